@@ -1,0 +1,180 @@
+"""One LightningDataModule for both formats: builds (src, tgt) pair datasets that yield the batch contract."""
+
+from __future__ import annotations
+
+import random
+from dataclasses import dataclass
+from typing import Protocol
+
+import lightning as L
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from nvs.data.kitti import ScenesFormat
+from nvs.data.shapenet import ObjectsFormat, object_pairs, random_partner
+from nvs.errors import UserError
+from nvs.geometry import scale_intrinsics
+
+
+class Format(Protocol):
+    has_depth: bool
+
+    def read(self, fid: str, size: int, with_depth: bool) -> tuple[torch.Tensor, torch.Tensor | None]: ...
+
+    def pose(self, tgt: str, src: str) -> torch.Tensor: ...
+
+
+@dataclass
+class Camera:
+    """Camera facts of a dataset (from the data config): intrinsics at a reference size and the latent pivot."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    size: int  # resolution the intrinsics are given at
+    pivot: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def K(self, size: int) -> torch.Tensor:
+        K = torch.tensor([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+        return scale_intrinsics(K, size / self.size)
+
+
+class ViewCache:
+    """Decoded views kept in memory as uint8 (images) so that every view is decoded once per process."""
+
+    def __init__(self, fmt: Format, size: int, with_depth: bool, enabled: bool):
+        self.fmt, self.size, self.with_depth, self.enabled = fmt, size, with_depth, enabled
+        self._store: dict[str, tuple[torch.Tensor, torch.Tensor | None]] = {}
+
+    def get(self, fid: str) -> tuple[torch.Tensor, torch.Tensor | None]:
+        hit = self._store.get(fid)
+        if hit is None:
+            hit = self.fmt.read(fid, self.size, self.with_depth)
+            if self.enabled:
+                self._store[fid] = hit
+        return hit
+
+
+class PairDataset(Dataset):
+    """(src, tgt) pairs -> batch items. ``pairs`` is a fixed list, or ``sources`` + ``partner`` draw a target per item."""
+
+    def __init__(self, cache: ViewCache, camera: Camera, pairs=None, sources=None, partner=None):
+        self.cache, self.camera = cache, camera
+        self.pairs, self.sources, self.partner = pairs, sources, partner
+        self.K = camera.K(cache.size)
+        self.pivot = torch.tensor(camera.pivot, dtype=torch.float32)
+
+    def __len__(self) -> int:
+        return len(self.pairs) if self.pairs is not None else len(self.sources)
+
+    def __getitem__(self, i: int) -> dict:
+        if self.pairs is not None:
+            src_id, tgt_id = self.pairs[i]
+        else:
+            src_id = self.sources[i]
+            # torch's RNG is seeded per worker by Lightning, so draws are reproducible under a fixed seed.
+            tgt_id = self.partner(src_id, random.Random(int(torch.randint(0, 2**31 - 1, ()))))
+        src, d_src = self.cache.get(src_id)
+        tgt, d_tgt = self.cache.get(tgt_id)
+        item = {
+            "src": src.float() / 255.0,
+            "tgt": tgt.float() / 255.0,
+            "K": self.K.clone(),
+            "T_tgt_src": self.cache.fmt.pose(tgt_id, src_id),
+            "pivot": self.pivot.clone(),
+            "id_src": src_id,
+            "id_tgt": tgt_id,
+        }
+        if d_src is not None:
+            item["depth_src"], item["depth_tgt"] = d_src, d_tgt
+        return item
+
+
+@dataclass
+class LoaderSettings:
+    batch_size: int = 8
+    eval_batch_size: int = 16
+    num_workers: int = 0
+    val_fraction: float = 0.1
+    val_pairs_per_model: int = 4
+    cache: bool = True
+    with_depth: bool = True  # load ground-truth depth when the dataset has it
+    limit_test_pairs: int | None = None
+
+
+class NVSDataModule(L.LightningDataModule):
+    """Train / val / test pair datasets for one dataset root in either format."""
+
+    def __init__(self, fmt: Format, camera: Camera, size: int, loader: LoaderSettings, seed: int = 0,
+                 max_delta_azimuth: int = 40):
+        super().__init__()
+        if size % 16:
+            raise UserError(f"data.size={size} must be divisible by 16")
+        self.fmt, self.camera, self.size, self.loader = fmt, camera, size, loader
+        self.seed, self.max_delta_azimuth = seed, max_delta_azimuth
+        self._sets: dict[str, PairDataset] = {}
+
+    def dataset(self, split: str) -> PairDataset:
+        if split not in self._sets:
+            with_depth = self.loader.with_depth and self.fmt.has_depth
+            cache = ViewCache(self.fmt, self.size, with_depth, self.loader.cache)
+            # One cache shared across splits: views are decoded once.
+            if self._sets:
+                cache = next(iter(self._sets.values())).cache
+            self._sets[split] = self._build(split, cache)
+        return self._sets[split]
+
+    def _build(self, split: str, cache: ViewCache) -> PairDataset:
+        lo = self.loader
+        if isinstance(self.fmt, ObjectsFormat):
+            if split == "test":
+                pairs = self.fmt.test_pairs()
+            else:
+                models = self.fmt.split_models(split, lo.val_fraction, self.seed)
+                if split == "train":
+                    sources = [v for m in models for v in self.fmt.views(m)]
+                    d = self.max_delta_azimuth
+                    return PairDataset(cache, self.camera, sources=sources,
+                                       partner=lambda s, rng: random_partner(s, d, rng))
+                pairs = object_pairs(models, self.fmt, lo.val_pairs_per_model, self.max_delta_azimuth, self.seed)
+        else:
+            pairs = self.fmt.pairs(split, lo.val_fraction, self.seed)
+        if split == "test" and lo.limit_test_pairs:
+            pairs = pairs[: lo.limit_test_pairs]
+        return PairDataset(cache, self.camera, pairs=pairs)
+
+    def _loader(self, split: str, shuffle: bool, batch_size: int) -> DataLoader:
+        g = torch.Generator().manual_seed(self.seed)
+        return DataLoader(self.dataset(split), batch_size=batch_size, shuffle=shuffle, generator=g,
+                          num_workers=self.loader.num_workers, drop_last=shuffle,
+                          persistent_workers=self.loader.num_workers > 0)
+
+    def train_dataloader(self):
+        return self._loader("train", True, self.loader.batch_size)
+
+    def val_dataloader(self):
+        return self._loader("val", False, self.loader.eval_batch_size)
+
+    def test_dataloader(self):
+        return self._loader("test", False, self.loader.eval_batch_size)
+
+
+def build_datamodule(fmt: str, root: str, size: int, camera: dict, loader: dict, seed: int = 0,
+                     category: str | None = None, translation_scale: float = 1.0,
+                     max_delta_azimuth: int = 40) -> NVSDataModule:
+    """Typed construction from the data config (``fmt`` is 'objects' or 'scenes')."""
+    cam = Camera(**camera)
+    settings = LoaderSettings(**loader)
+    if fmt == "objects":
+        if not category:
+            raise UserError("data.category is required for the objects format")
+        f: Format = ObjectsFormat(root, category, centre=tuple(cam.pivot))
+    elif fmt == "scenes":
+        f = ScenesFormat(root, translation_scale)
+    else:
+        raise UserError(f"data.format={fmt!r}: expected 'objects' or 'scenes'")
+    return NVSDataModule(f, cam, size, settings, seed=seed, max_delta_azimuth=max_delta_azimuth)
+
+
+__all__ = ["Camera", "LoaderSettings", "NVSDataModule", "PairDataset", "build_datamodule"]

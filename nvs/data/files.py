@@ -1,0 +1,128 @@
+"""Reading the files both dataset formats share: images, depth maps, id lists and pair lists.
+
+Every failure raises ``DataError`` naming the file (and line).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image, UnidentifiedImageError
+
+from nvs.errors import DataError
+
+# Modes that convert to RGB without losing meaning; anything else (16-bit, float, CMYK, 1-bit) is refused.
+_ACCEPTED_MODES = {"RGB", "RGBA", "L", "P", "LA"}
+
+
+def read_image(path: str | Path, size: int) -> torch.Tensor:
+    """PNG/JPEG -> (3,size,size) uint8. Square images are resized (bicubic, antialiased); alpha is composited on white."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(path, "image file is missing")
+    try:
+        with Image.open(path) as im:
+            im.load()
+            mode = im.mode
+            if mode not in _ACCEPTED_MODES:
+                raise DataError(path, f"unsupported image mode {mode!r} (expected 8-bit RGB, RGBA, L or P)")
+            if im.width != im.height:
+                raise DataError(path, f"image is {im.width}x{im.height}; expected a square image")
+            if mode in ("RGBA", "LA", "P"):
+                im = im.convert("RGBA")
+                white = Image.new("RGBA", im.size, (255, 255, 255, 255))
+                im = Image.alpha_composite(white, im)
+            im = im.convert("RGB")
+            if im.width != size:
+                im = im.resize((size, size), Image.BICUBIC, reducing_gap=None)
+            arr = np.asarray(im, dtype=np.uint8)
+    except DataError:
+        raise
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as err:
+        raise DataError(path, f"cannot read image ({err.__class__.__name__}: {err})") from None
+    return torch.from_numpy(arr.copy()).permute(2, 0, 1).contiguous()
+
+
+def read_depth(path: str | Path, size: int) -> torch.Tensor:
+    """``.npy`` float depth in metres (0 = no data) -> (1,size,size) float32; resized by nearest-neighbour pooling."""
+    path = Path(path)
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as err:
+        raise DataError(path, f"cannot read depth ({err.__class__.__name__}: {err})") from None
+    if arr.ndim != 2 or arr.shape[0] != arr.shape[1]:
+        raise DataError(path, f"depth must be a square 2-D array, got shape {arr.shape}")
+    d = torch.from_numpy(np.asarray(arr, dtype=np.float32))
+    d = torch.where(torch.isfinite(d) & (d > 0), d, torch.zeros_like(d))
+    n = d.shape[0]
+    if n != size:
+        if n % size:
+            raise DataError(path, f"depth is {n}x{n}, not an integer multiple of the image size {size}")
+        # Nearest (strided) pick: averaging would invent depths across object boundaries.
+        f = n // size
+        d = d[f // 2 :: f, f // 2 :: f]
+    return d[None].contiguous()
+
+
+def read_lines(path: str | Path) -> list[tuple[int, str]]:
+    """Non-empty, non-comment lines with their 1-based line numbers."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(path, "file is missing")
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as err:
+        raise DataError(path, f"cannot read ({err})") from None
+    out = []
+    for i, line in enumerate(text.splitlines(), start=1):
+        s = line.strip()
+        if s and not s.startswith("#"):
+            out.append((i, s))
+    return out
+
+
+def read_ids(path: str | Path) -> list[str]:
+    """One id per line; duplicates are an error."""
+    seen: dict[str, int] = {}
+    for lineno, s in read_lines(path):
+        if len(s.split()) != 1:
+            raise DataError(path, f"expected one id per line, got {s!r}", lineno)
+        if s in seen:
+            raise DataError(path, f"duplicated id {s!r} (first on line {seen[s]})", lineno)
+        seen[s] = lineno
+    if not seen:
+        raise DataError(path, "no ids: the split is empty")
+    return list(seen)
+
+
+def read_pairs(path: str | Path, known: set[str] | None = None) -> list[tuple[str, str]]:
+    """``idA idB`` per line (A = source, B = target). Unknown ids and duplicated pairs are errors."""
+    seen: dict[tuple[str, str], int] = {}
+    for lineno, s in read_lines(path):
+        parts = s.split()
+        if len(parts) != 2:
+            raise DataError(path, f"expected 'idA idB', got {s!r}", lineno)
+        pair = (parts[0], parts[1])
+        if known is not None:
+            for pid in pair:
+                if pid not in known:
+                    raise DataError(path, f"unknown id {pid!r}", lineno)
+        if pair in seen:
+            raise DataError(path, f"duplicated pair {s!r} (first on line {seen[pair]})", lineno)
+        seen[pair] = lineno
+    if not seen:
+        raise DataError(path, "no pairs: the split is empty")
+    return list(seen)
+
+
+def parse_float(token: str, path: Path, lineno: int, what: str) -> float:
+    try:
+        v = float(token)
+    except ValueError:
+        raise DataError(path, f"{what} {token!r} is not a number", lineno) from None
+    if not math.isfinite(v):
+        raise DataError(path, f"{what} is not finite ({token})", lineno)
+    return v
