@@ -1,0 +1,88 @@
+"""Config -> objects. The DictConfig stops here: everything below takes typed arguments."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import torch
+from hydra.errors import InstantiationException
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from nvs.data.datamodule import NVSDataModule, build_datamodule
+from nvs.errors import UserError
+from nvs.module import NVSModule
+
+
+def _instantiate(node, key: str, **kwargs):
+    try:
+        return instantiate(node, **kwargs)
+    except InstantiationException as err:
+        # Hydra wraps the real error; name the config key and keep the one-line cause.
+        cause = err.__cause__ or err
+        raise UserError(f"config '{key}': {cause.__class__.__name__}: {cause}") from None
+
+
+def build_data(cfg: DictConfig) -> NVSDataModule:
+    d = cfg.data
+    for key in ("format", "root", "size", "camera", "loader"):
+        if key not in d:
+            raise UserError(f"config 'data.{key}' is missing")
+    if not isinstance(d.size, int) or d.size <= 0:
+        raise UserError(f"config 'data.size' must be a positive integer, got {d.size!r}")
+    try:
+        return build_datamodule(
+            fmt=d.format, root=d.root, size=d.size,
+            camera=OmegaConf.to_container(d.camera, resolve=True),
+            loader=OmegaConf.to_container(d.loader, resolve=True),
+            seed=int(cfg.seed), category=d.get("category"),
+            translation_scale=float(d.translation_scale), max_delta_azimuth=int(d.max_delta_azimuth))
+    except TypeError as err:
+        raise UserError(f"config 'data': {err}") from None
+
+
+def build_module(cfg: DictConfig) -> NVSModule:
+    net = _instantiate(cfg.model, "model", _convert_="all")
+    if cfg.get("loss") is None:
+        raise UserError("config 'loss' is empty: choose at least one term, e.g. loss=[recon]")
+    losses = {name: _instantiate(node, f"loss.{name}") for name, node in cfg.loss.items()}
+    optimizer = _instantiate(cfg.optim, "optim")
+    module = NVSModule(net, losses, optimizer, nonfinite=cfg.nonfinite, channels_last=bool(cfg.channels_last),
+                       model_name=str(cfg.model.get("name", "nvs")))
+    module.run_config = OmegaConf.to_container(cfg, resolve=True)
+    return module
+
+
+def parameter_count(module: torch.nn.Module) -> int:
+    """Trainable parameters of the network (frozen loss networks such as VGG excluded)."""
+    return sum(p.numel() for p in module.parameters() if p.requires_grad)
+
+
+def git_sha() -> str:
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5,
+                             cwd=Path(__file__).resolve().parent)
+        sha = out.stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
+                               text=True, timeout=5, cwd=Path(__file__).resolve().parent).stdout.strip()
+        return (sha + ("-dirty" if dirty else "")) if sha else "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def device_name(accelerator_device: torch.device | None = None) -> str:
+    dev = accelerator_device or torch.device("cpu")
+    if dev.type == "cuda":
+        return torch.cuda.get_device_name(dev)
+    import platform
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"cpu: {cpu} ({torch.get_num_threads()} threads)"

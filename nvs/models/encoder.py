@@ -1,0 +1,42 @@
+"""Encoder phi: image -> latent points z (B,n,3) and skip features conv0 (1), conv2 (1/4), conv3 (1/8), conv4 (1/16)."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn as nn
+
+from nvs.models.blocks import conv3, down
+
+SKIP_CHANNELS = {"conv0": 64, "conv2": 128, "conv3": 256, "conv4": 256}
+SKIP_STRIDES = {"conv0": 1, "conv2": 4, "conv3": 8, "conv4": 16}
+
+
+class Encoder(nn.Module):
+    """The paper's encoder (LeakyReLU 0.2, InstanceNorm without affine); stages after conv4 follow the image size.
+
+    (B,3,S,S) in [-1,1] -> z (B,n_points,3), {level: (B,C,S/stride,S/stride)}.
+    """
+
+    def __init__(self, image_size: int, n_points: int = 200):
+        super().__init__()
+        if image_size % 16 or image_size < 64:
+            raise ValueError(f"image_size={image_size} must be a multiple of 16 and at least 64")
+        self.n_points = n_points
+        self.conv0 = nn.Sequential(conv3(3, 64), conv3(64, 64))
+        self.conv1 = down(64, 64, norm="none")
+        self.conv2 = down(64, 128)
+        self.conv3 = down(128, 256)
+        self.conv4 = down(256, 256)
+        # Extra stride-2 stages down to 4x4 (conv5, conv6 at 256^2); the last has no norm/activation.
+        n_extra = (image_size // 64).bit_length() - 1
+        self.extra = nn.Sequential(*[down(256, 256, norm="none" if i == n_extra - 1 else "instance",
+                                          activation=i != n_extra - 1) for i in range(n_extra)])
+        self.fc = nn.Linear(256 * 4 * 4, n_points * 3)
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        c0 = self.conv0(x)
+        c2 = self.conv2(self.conv1(c0))
+        c3 = self.conv3(c2)
+        c4 = self.conv4(c3)
+        z = self.fc(self.extra(c4).flatten(1)).view(-1, self.n_points, 3)
+        return z, {"conv0": c0, "conv2": c2, "conv3": c3, "conv4": c4}

@@ -1,0 +1,17 @@
+"""Latent transform: z~_t = [R|t] . z_s (homogeneous points), expressed about the dataset's pivot."""
+
+from __future__ import annotations
+
+import torch
+
+from nvs.geometry import about_pivot
+
+
+def transform_latent(z: torch.Tensor, T_tgt_src: torch.Tensor, pivot: torch.Tensor) -> torch.Tensor:
+    """z (B,n,3), T_tgt_src (B,4,4), pivot (B,3) -> (B,n,3).
+
+    The latent lives in coordinates centred on the pivot: the object centre for objects (so only the rotation
+    acts, as in the paper's code) and the camera centre (pivot 0) for scenes (rotation and translation act).
+    """
+    T = about_pivot(T_tgt_src.to(z.dtype), pivot.to(z.dtype))
+    return z @ T[:, :3, :3].transpose(1, 2) + T[:, None, :3, 3]

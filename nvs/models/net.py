@@ -1,0 +1,70 @@
+"""The paper's network: encoder -> latent transform -> depth decoder -> depth-warped skips -> pixel decoder."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+import torch.nn as nn
+
+from nvs.geometry import inverse_warp
+from nvs.models.encoder import Encoder
+from nvs.models.latent import transform_latent
+from nvs.models.pixel_decoder import PixelDecoder
+from nvs.types import Batch, Outputs
+
+
+class Extras:
+    """Names of outputs that only some losses read; a forward computes only those requested."""
+
+    DEPTH_FROM_TGT = "depth_from_tgt"  # psi_d(z_t), z_t encoded from the target image (depth consistency)
+    DEPTH_SRC = "depth_src"  # psi_d(z_s), the source view's own depth (edge smoothness on the source)
+    WARPED_SRC = "warped_src"  # source image warped by the predicted target depth (warp loss)
+
+
+def to_model_range(img: torch.Tensor) -> torch.Tensor:
+    return img * 2.0 - 1.0
+
+
+def to_image_range(x: torch.Tensor) -> torch.Tensor:
+    return (x + 1.0) * 0.5
+
+
+class NVSNet(nn.Module):
+    """Depth-guided skip-connection network (Hou et al. 2021).
+
+    forward(batch, needs) -> outputs with ``rgb`` (B,3,S,S) in [0,1], ``rgb_scales`` (coarse -> fine, [-1,1]),
+    ``depth`` (B,1,S,S) and whichever ``Extras`` were requested.
+    """
+
+    def __init__(self, image_size: int, skips: nn.Module, depth: Callable[..., nn.Module], n_points: int = 200):
+        super().__init__()
+        self.image_size = image_size
+        self.encoder = Encoder(image_size, n_points)
+        self.depth = depth(image_size=image_size, n_points=n_points)
+        self.skips = skips
+        self.pixel_decoder = PixelDecoder(image_size, n_points, skips.levels)
+
+    def forward(self, batch: Batch, needs: frozenset[str] = frozenset()) -> Outputs:
+        src, K, T = batch["src"], batch["K"], batch["T_tgt_src"]
+        z_s, feats = self.encoder(to_model_range(src))
+        z_t = transform_latent(z_s, T, batch["pivot"])
+        latents = [z_t]
+        if Extras.DEPTH_FROM_TGT in needs:
+            latents.append(self.encoder(to_model_range(batch["tgt"]))[0])
+        if Extras.DEPTH_SRC in needs:
+            latents.append(z_s)
+        depths = self.depth(latents)
+        depth = depths[0]
+        out: Outputs = {"depth": depth}
+        rest = iter(depths[1:])
+        if Extras.DEPTH_FROM_TGT in needs:
+            out[Extras.DEPTH_FROM_TGT] = next(rest)
+        if Extras.DEPTH_SRC in needs:
+            out[Extras.DEPTH_SRC] = next(rest)
+        rgb_scales = self.pixel_decoder(z_t, self.skips(feats, depth, K, T))
+        out["rgb_scales"] = rgb_scales
+        out["rgb"] = to_image_range(rgb_scales[-1])
+        if Extras.WARPED_SRC in needs:
+            out[Extras.WARPED_SRC], out["warp_valid"] = inverse_warp(src, depth.to(src.dtype), K, T)
+        return out

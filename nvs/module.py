@@ -1,0 +1,118 @@
+"""The one LightningModule: net -> losses -> log; evaluation writes per-image metrics."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import lightning as L
+import torch
+import torch.nn as nn
+
+from nvs import metrics as M
+from nvs.errors import UserError
+from nvs.types import Batch
+
+
+class NonFiniteLossError(RuntimeError):
+    """Raised when the training loss becomes NaN/Inf and the guard is set to stop."""
+
+
+class NVSModule(L.LightningModule):
+    """Wraps any network with ``forward(batch, needs) -> outputs`` (the paper's model or a baseline).
+
+    Args:
+        net: the network.
+        losses: name -> loss term (each with ``weight`` and ``needs``).
+        optimizer: partial optimizer factory taking the parameters.
+        nonfinite: 'stop' raises on a NaN/Inf loss (the last good checkpoint stays), 'skip' drops that step.
+        channels_last: run convolutions in channels_last memory format.
+        val_metrics: image metrics logged on the validation split (model selection uses ``val/l1``).
+    """
+
+    def __init__(self, net: nn.Module, losses: dict[str, nn.Module], optimizer: Callable,
+                 nonfinite: str = "stop", channels_last: bool = False, val_metrics=("l1", "ssim_paper"),
+                 model_name: str = "nvs"):
+        super().__init__()
+        if not losses:
+            raise UserError("no loss terms enabled: set loss=[...] to at least one of the conf/loss options")
+        if nonfinite not in ("stop", "skip"):
+            raise UserError(f"nonfinite={nonfinite!r}: expected 'stop' or 'skip'")
+        self.net = net
+        self.losses = nn.ModuleDict(losses)
+        self.optimizer_factory = optimizer
+        self.nonfinite = nonfinite
+        self.channels_last = channels_last
+        self.val_metrics = tuple(val_metrics)
+        self.model_name = model_name
+        # What the enabled losses read, fixed at build time.
+        self.train_needs = frozenset().union(*(term.needs for term in losses.values()))
+        self.test_rows: list[dict] = []
+        if channels_last:
+            self.net.to(memory_format=torch.channels_last)
+
+    # -- steps ---------------------------------------------------------------------------------------------------
+    def _prepare(self, batch: Batch) -> Batch:
+        if self.channels_last:
+            for key in ("src", "tgt"):
+                batch[key] = batch[key].contiguous(memory_format=torch.channels_last)
+        return batch
+
+    def forward(self, batch: Batch, needs: frozenset[str] = frozenset()):
+        return self.net(self._prepare(batch), needs)
+
+    def training_step(self, batch: Batch, batch_idx: int):
+        out = self(batch, self.train_needs)
+        total = 0.0
+        bs = batch["src"].shape[0]
+        for name, term in self.losses.items():
+            value = term(out, batch)
+            self.log(f"train/loss/{name}", value.detach(), batch_size=bs)
+            total = total + term.weight * value
+        self.log("train/loss/total", total.detach(), prog_bar=True, batch_size=bs)
+        if not torch.isfinite(total):
+            if self.nonfinite == "skip":
+                self.log("train/skipped_nonfinite", 1.0, reduce_fx="sum", batch_size=bs)
+                return None
+            raise NonFiniteLossError(
+                f"non-finite training loss at step {self.global_step} "
+                f"({', '.join(f'{n}' for n in self.losses)}); the last good checkpoint is kept. "
+                "Set module.nonfinite=skip to drop such steps instead.")
+        return total
+
+    def validation_step(self, batch: Batch, batch_idx: int):
+        out = self(batch)
+        bs = batch["src"].shape[0]
+        for name in self.val_metrics:
+            self.log(f"val/{name}", M.IMAGE_METRICS[name](out["rgb"].float(), batch["tgt"]).mean(), batch_size=bs)
+
+    def test_step(self, batch: Batch, batch_idx: int):
+        out = self(batch)
+        depth_gt = batch.get("depth_tgt")
+        depth_pred = out.get("depth") if depth_gt is not None else None
+        values = M.compute_all(out["rgb"].float(), batch["tgt"], depth_pred, depth_gt)
+        for i in range(batch["src"].shape[0]):
+            row = {"id_src": batch["id_src"][i], "id_tgt": batch["id_tgt"][i]}
+            row.update({k: float(v[i]) for k, v in values.items()})
+            self.test_rows.append(row)
+
+    def on_test_epoch_start(self):
+        self.test_rows = []
+
+    def test_summary(self) -> dict[str, float]:
+        """Mean of every per-image metric over the test pairs (NaN entries, e.g. no valid depth, are ignored)."""
+        keys = [k for k in (self.test_rows[0] if self.test_rows else {}) if k not in ("id_src", "id_tgt")]
+        summary = {}
+        for k in keys:
+            vals = [r[k] for r in self.test_rows if not math.isnan(r[k])]
+            summary[k] = sum(vals) / len(vals) if vals else float("nan")
+        summary["n_pairs"] = len(self.test_rows)
+        return summary
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        # The resolved run config travels with the weights so that evaluation can rebuild the same network.
+        checkpoint["nvs_config"] = getattr(self, "run_config", None)
+
+    def configure_optimizers(self):
+        params = [p for p in self.parameters() if p.requires_grad]
+        return self.optimizer_factory(params)

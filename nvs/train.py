@@ -1,0 +1,102 @@
+"""python -m nvs.train experiment=<name> [key=value ...]: train, select on validation, evaluate on the test pairs."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import hydra
+import lightning as L
+import torch
+from hydra.core.hydra_config import HydraConfig
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from nvs.build import build_data, build_module, device_name, git_sha, parameter_count
+from nvs.errors import UserError, exits_cleanly
+from nvs.run_files import write_metrics, write_per_image
+
+
+class _Throughput(L.Callback):
+    """Wall time and samples/s of the fit (validation excluded from samples, included in wall time)."""
+
+    def __init__(self):
+        self.samples, self.start, self.train_s = 0, None, 0.0
+
+    def on_train_start(self, trainer, pl_module):
+        self.start = time.perf_counter()
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        self.samples += batch["src"].shape[0]
+
+    def on_train_end(self, trainer, pl_module):
+        self.train_s = time.perf_counter() - self.start
+
+
+def _resume_path(cfg: DictConfig, out_dir: Path) -> str | None:
+    if cfg.ckpt_path in (None, "none", "null"):
+        return None
+    if cfg.ckpt_path == "auto":
+        last = out_dir / "checkpoints" / "last.ckpt"
+        return str(last) if last.is_file() else None
+    if not Path(cfg.ckpt_path).is_file():
+        raise UserError(f"ckpt_path={cfg.ckpt_path}: no such checkpoint")
+    return str(cfg.ckpt_path)
+
+
+def run(cfg: DictConfig, out_dir: Path) -> dict:
+    """Train and test one configuration; writes metrics.json and test_per_image.csv into ``out_dir``."""
+    L.seed_everything(int(cfg.seed), workers=True)
+    torch.set_float32_matmul_precision("high")
+    datamodule = build_data(cfg)
+    module = build_module(cfg)
+    callbacks = [instantiate(c) for c in cfg.get("callbacks", {}).values()]
+    throughput = _Throughput()
+    loggers = [instantiate(c) for c in cfg.get("logger", {}).values()]
+    trainer = instantiate(cfg.trainer, callbacks=callbacks + [throughput], logger=loggers or False)
+    trainer.fit(module, datamodule=datamodule, ckpt_path=_resume_path(cfg, out_dir))
+
+    result = {
+        "model": module.model_name,
+        "data": cfg.data.name,
+        "image_size": cfg.data.size,
+        "seed": int(cfg.seed),
+        "steps": int(trainer.global_step),
+        "train_wall_s": throughput.train_s,
+        "train_samples_per_s": throughput.samples / throughput.train_s if throughput.train_s else None,
+        "params": parameter_count(module.net),
+        "device": device_name(module.device),
+        "precision": str(cfg.trainer.precision),
+        "git_sha": git_sha(),
+        "overrides": list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else [],
+    }
+    if cfg.test and not cfg.trainer.get("fast_dev_run"):
+        ckpt = None
+        for cb in callbacks:
+            if isinstance(cb, L.pytorch.callbacks.ModelCheckpoint) and cb.best_model_path:
+                ckpt = cb.best_model_path
+        t0 = time.perf_counter()
+        trainer.test(module, datamodule=datamodule, ckpt_path=ckpt, verbose=False)
+        n = max(len(module.test_rows), 1)
+        result["eval_ms_per_image"] = 1000 * (time.perf_counter() - t0) / n
+        result["checkpoint"] = ckpt
+        result["test"] = module.test_summary()
+        write_per_image(out_dir / "test_per_image.csv", module.test_rows)
+    write_metrics(out_dir / "metrics.json", result)
+    return result
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="train")
+@exits_cleanly
+def main(cfg: DictConfig) -> None:
+    out_dir = Path(HydraConfig.get().runtime.output_dir)
+    OmegaConf.resolve(cfg)
+    result = run(cfg, out_dir)
+    test = result.get("test", {})
+    if test:
+        print("test: " + ", ".join(f"{k}={v:.4f}" for k, v in test.items() if isinstance(v, float)))
+    print(f"run directory: {out_dir}")
+
+
+if __name__ == "__main__":
+    main()
