@@ -43,7 +43,9 @@ def build_data(cfg: DictConfig) -> NVSDataModule:
 
 
 def build_module(cfg: DictConfig) -> NVSModule:
-    net = _instantiate(cfg.model, "model", _convert_="all")
+    # 'name' labels the model option in tables; everything else is the network's constructor arguments.
+    net_cfg = OmegaConf.masked_copy(cfg.model, [k for k in cfg.model if k != "name"])
+    net = _instantiate(net_cfg, "model", _convert_="all")
     if cfg.get("loss") is None:
         raise UserError("config 'loss' is empty: choose at least one term, e.g. loss=[recon]")
     losses = {name: _instantiate(node, f"loss.{name}") for name, node in cfg.loss.items()}
