@@ -1,0 +1,316 @@
+"""The real 3-D models the renderer uses, found in the installed Debian packages (see scripts/install_assets.sh).
+
+Every source loads into `Part`s in one canonical model frame: y up, the model's front facing +z, any scale.
+"""
+
+from __future__ import annotations
+
+import io
+import re
+import tempfile
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from PIL import Image
+
+from nvs.data.render.ac3d import read_ac3d, triangles
+from nvs.data.render.scene import Part
+
+SH3D_DIR = Path("/usr/share/sweethome3d/furniture")
+TORCS_DIR = Path("/usr/share/games/torcs")
+TRIGGER_ZIP = Path("/usr/share/games/trigger-rally/data.zip")
+COPYRIGHT = {p: Path(f"/usr/share/doc/{p}/copyright")
+             for p in ("sweethome3d-furniture", "torcs-data", "trigger-rally-data")}
+INSTALL_HINT = "install the asset packages with scripts/install_assets.sh"
+
+# ShapeNet's chair class holds chairs, armchairs, stools and lounge chairs; sofas and benches are other classes.
+_SEAT = re.compile(r"chair|stool|\bseat\b", re.I)
+_NOT_SEAT = re.compile(r"wheelchair", re.I)
+# ShapeNet's car class: cars, SUVs, vans; not trucks, buses, toys.
+_NOT_CAR = re.compile(r"truck|bus\b|model", re.I)
+
+
+@dataclass
+class ModelSource:
+    """A model to render: id (no '_'), display name, Debian package, licence/credit line, loader."""
+
+    id: str
+    name: str
+    package: str
+    licence: str
+    credit: str
+    load: Callable[[], list[Part]]
+
+
+def slug(*words: str) -> str:
+    s = "-".join(words).lower()
+    return re.sub(r"[^a-z0-9]+", "-", s).strip("-")
+
+
+# --- Sweet Home 3D catalogs -------------------------------------------------------------------------------------
+
+def _properties(z: zipfile.ZipFile) -> dict[str, str]:
+    props = {}
+    for line in z.read("PluginFurnitureCatalog.properties").decode("latin-1").splitlines():
+        line = line.strip()
+        if line and not line.startswith("#") and "=" in line:
+            k, v = line.split("=", 1)
+            props[k.strip()] = v.strip()
+    return props
+
+
+def _trimesh_parts(obj_path: Path) -> list[Part]:
+    """OBJ (+MTL, textures beside it) -> parts, via trimesh, with scene transforms applied."""
+    import trimesh
+
+    scene = trimesh.load(obj_path, force="scene", process=False)
+    parts = []
+    for name in scene.graph.nodes_geometry:
+        T, geom_name = scene.graph[name]
+        g = scene.geometry[geom_name]
+        if not isinstance(g, trimesh.Trimesh) or len(g.faces) == 0:
+            continue
+        pos = np.asarray(g.vertices, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
+        uv, image, color = None, None, np.array([0.8, 0.8, 0.8, 1.0])
+        vis = g.visual
+        if vis.kind == "texture" or isinstance(vis, trimesh.visual.TextureVisuals):
+            mat = vis.material
+            if isinstance(mat, trimesh.visual.material.PBRMaterial):
+                image = mat.baseColorTexture
+                if mat.baseColorFactor is not None:
+                    color = np.asarray(mat.baseColorFactor, dtype=np.float64) / 255.0
+            else:
+                image = getattr(mat, "image", None)
+                color = np.asarray(mat.diffuse, dtype=np.float64) / 255.0
+            if vis.uv is not None and len(vis.uv) == len(g.vertices):
+                uv = np.asarray(vis.uv, dtype=np.float64)
+            else:
+                image = None
+        elif vis.kind in ("face", "vertex"):
+            color = np.asarray(vis.main_color, dtype=np.float64) / 255.0
+        if image is not None:
+            color = color.copy()
+            color[:3] = np.maximum(color[:3], 1e-3)
+            # MTL files often pair a texture with Kd = 0 or a dark Kd; SH3D shows the texture unmodulated.
+            color[:3] = 1.0
+        parts.append(Part(pos, np.asarray(g.faces, dtype=np.int64), uv, image, color))
+    return parts
+
+
+def _sh3d_loader(catalog: Path, model_path: str, rotation: np.ndarray) -> Callable[[], list[Part]]:
+    def load() -> list[Part]:
+        folder = model_path.lstrip("/").rsplit("/", 1)[0] + "/"
+        with zipfile.ZipFile(catalog) as z, tempfile.TemporaryDirectory(prefix="nvs-sh3d-") as tmp:
+            for member in z.namelist():
+                if member.startswith(folder) and not member.endswith("/"):
+                    z.extract(member, tmp)
+            parts = _trimesh_parts(Path(tmp) / model_path.lstrip("/"))
+            for p in parts:
+                if p.image is not None:
+                    p.image.load()  # read the texture before the temp dir goes away
+        # SH3D's modelRotation turns the file's axes into SH3D's (y up, front towards +z): v' = M v.
+        return [Part(p.positions @ rotation.T, p.faces, p.uvs, p.image, p.color) for p in parts]
+
+    return load
+
+
+def sh3d_models(kind: str) -> list[ModelSource]:
+    """Seats ('chairs') or cars ('cars') of the Sweet Home 3D furniture catalogs."""
+    out = []
+    for catalog in sorted(SH3D_DIR.glob("*.sh3f")):
+        with zipfile.ZipFile(catalog) as z:
+            props = _properties(z)
+        licence = props.get("license", "see copyright")
+        ids = sorted({int(k.split("#")[1]) for k in props if k.startswith("name#")})
+        for i in ids:
+            name, cat = props.get(f"name#{i}", ""), props.get(f"category#{i}", "")
+            tags = props.get(f"tags#{i}", "")
+            if kind == "chairs":
+                ok = bool(_SEAT.search(name)) and not _NOT_SEAT.search(name) and cat != "Vehicles"
+            else:
+                ok = (cat == "Vehicles" and re.search(r"\bcar\b", f"{name}, {tags}", re.I) is not None
+                      and not _NOT_CAR.search(name))
+            if not ok:
+                continue
+            model = props[f"model#{i}"]
+            rot = props.get(f"modelRotation#{i}")
+            R = np.array([float(v) for v in rot.split()]).reshape(3, 3) if rot else np.eye(3)
+            folder = model.lstrip("/").split("/")[-2]
+            mid = slug("sh3d", catalog.stem, folder)
+            creator = props.get(f"creator#{i}", "")
+            out.append(ModelSource(mid, name, "sweethome3d-furniture", licence,
+                                   f"'{name}' by {creator}, {catalog.name}", _sh3d_loader(catalog, model, R)))
+    if len({m.id for m in out}) != len(out):
+        raise RuntimeError("duplicated Sweet Home 3D model ids")
+    return out
+
+
+# --- TORCS cars (AC3D) ------------------------------------------------------------------------------------------
+
+def read_texture(name: str, dirs: list[Path]) -> Image.Image | None:
+    """A texture by file name, looked up in dirs; SGI .rgb and PNG, with the other extension as a fallback."""
+    stem = Path(name).stem
+    for d in dirs:
+        for cand in (name, f"{stem}.png", f"{stem}.rgb", f"{stem}.rgba"):
+            p = d / cand
+            if p.is_file():
+                with Image.open(p) as im:
+                    im.load()
+                    return im.convert("RGBA")
+    return None
+
+
+def ac3d_parts(path: Path, texture_dirs: list[Path], keep=lambda obj: True) -> list[Part]:
+    """AC3D file -> parts merged per texture (untextured objects per material colour)."""
+    model = read_ac3d(path)
+    images: dict[str, Image.Image | None] = {}
+    groups: dict[tuple, list] = {}
+    for obj in model.objects:
+        if not keep(obj):
+            continue
+        for s in obj.surfaces:
+            tri = triangles(s)
+            if len(tri) == 0:
+                continue
+            if obj.texture and obj.texture not in images:
+                images[obj.texture] = read_texture(obj.texture, texture_dirs)
+            img = images.get(obj.texture) if obj.texture else None
+            key = ("tex", obj.texture) if img is not None else ("mat", min(s.mat, len(model.material_rgb) - 1))
+            corners = tri.reshape(-1)
+            groups.setdefault(key, []).append((obj.vertices[s.refs[corners]], s.uvs[corners]))
+    parts = []
+    for key, chunks in groups.items():
+        pos = np.concatenate([c[0] for c in chunks])
+        uv = np.concatenate([c[1] for c in chunks])
+        faces = np.arange(len(pos)).reshape(-1, 3)
+        if key[0] == "tex":
+            parts.append(Part(pos, faces, uv, images[key[1]], np.ones(4)))
+        else:
+            rgb = model.material_rgb[key[1]]
+            parts.append(Part(pos, faces, None, None, np.array([*rgb, 1.0])))
+    return parts
+
+
+# TORCS car files are y up with the car's front towards +x: rotate +x to +z (x' = -z, z' = x).
+_TORCS_TO_CANON = np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+
+
+def _torcs_attnum(xml: str, section: str, name: str) -> float:
+    block = re.search(r'<section name="' + re.escape(section) + r'">(.*?)</section>', xml, re.S)
+    if block is None:
+        raise ValueError(f"no section {section!r}")
+    m = re.search(r'<attnum name="' + re.escape(name) + r'"[^>]*val="([^"]+)"', block.group(1))
+    if m is None:
+        raise ValueError(f"no {name!r} in section {section!r}")
+    return float(m.group(1))
+
+
+def _cylinder(radius: float, width: float, centre: np.ndarray, grey: float) -> Part:
+    """A closed cylinder along z (AC3D's lateral axis), as an untextured part."""
+    import trimesh
+
+    c = trimesh.creation.cylinder(radius=radius, height=width, sections=24)
+    return Part(np.asarray(c.vertices) + centre, np.asarray(c.faces), None, None, np.array([grey, grey, grey, 1.0]))
+
+
+def torcs_wheels(xml: str) -> list[Part]:
+    """Tyres and hubs from the car's physics description (TORCS attaches wheel models at run time).
+
+    TORCS' car frame is x forward, y left, z up; its AC3D files are x forward, y up, z right (= -y).
+    """
+    parts = []
+    for axle, side in (("Front Axle", "Front Right Wheel"), ("Front Axle", "Front Left Wheel"),
+                       ("Rear Axle", "Rear Right Wheel"), ("Rear Axle", "Rear Left Wheel")):
+        x = _torcs_attnum(xml, axle, "xpos")
+        y = _torcs_attnum(xml, side, "ypos")
+        rim = _torcs_attnum(xml, side, "rim diameter") * 0.0254
+        width = _torcs_attnum(xml, side, "tire width") / 1000.0
+        ratio = _torcs_attnum(xml, side, "tire height-width ratio")
+        radius = rim / 2 + width * ratio
+        centre = np.array([x, radius, -y])  # the body's y = 0 is the ground
+        parts.append(_cylinder(radius, width, centre, 0.06))
+        parts.append(_cylinder(rim / 2 * 0.9, width + 0.01, centre, 0.55))
+    return parts
+
+
+def torcs_models() -> list[ModelSource]:
+    out = []
+    for d in sorted((TORCS_DIR / "cars").iterdir()) if (TORCS_DIR / "cars").is_dir() else []:
+        acc = d / f"{d.name}.acc"
+        if not acc.is_file():
+            continue
+
+        def load(acc=acc, d=d) -> list[Part]:
+            parts = ac3d_parts(acc, [d, TORCS_DIR / "data" / "textures"],
+                               keep=lambda o: not o.name.lower().startswith("shadow"))
+            parts += torcs_wheels((d / f"{d.name}.xml").read_text(errors="replace"))
+            return [Part(p.positions @ _TORCS_TO_CANON.T, p.faces, p.uvs, p.image, p.color) for p in parts]
+
+        out.append(ModelSource(slug("torcs", d.name), d.name, "torcs-data", "GPL-2+ / Free Art License (torcs-data)",
+                               f"TORCS car '{d.name}' (cars/{d.name}/readme.txt)", load))
+    return out
+
+
+# --- Trigger Rally cars (OBJ + wheels) --------------------------------------------------------------------------
+
+# Trigger vehicle files are z up with the front towards +y: (x, y, z) -> (-x, z, y).
+_TRIGGER_TO_CANON = np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
+
+
+def _attr_vec(xml: str, tag_attr: str) -> list[np.ndarray]:
+    return [np.array([float(v) for v in m.split(",")]) for m in re.findall(tag_attr + r'="([^"]+)"', xml)]
+
+
+def _trigger_loader(name: str) -> Callable[[], list[Part]]:
+    def load() -> list[Part]:
+        with zipfile.ZipFile(TRIGGER_ZIP) as z, tempfile.TemporaryDirectory(prefix="nvs-trigger-") as tmp:
+            folder = f"vehicles/{name}/"
+            for member in z.namelist():
+                if member.startswith(folder) and not member.endswith("/"):
+                    z.extract(member, tmp)
+            xml = (Path(tmp) / folder / f"{name}.vehicle").read_text()
+            body = _trimesh_parts(Path(tmp) / folder / f"{name}.obj")
+            wheel_obj = re.search(r'wheelmodel="([^"]+)"', xml).group(1)
+            wheel = _trimesh_parts(Path(tmp) / folder / wheel_obj)
+            for p in body + wheel:
+                if p.image is not None:
+                    p.image.load()
+        body_scale = float(re.search(r'<part[^>]*scale="([^"]+)"', xml, re.S).group(1))
+        wheel_scale = float(re.search(r'wheelscale="([^"]+)"', xml).group(1))
+        parts = list(body)
+        # Wheels: positions in metres in the body frame; the wheel model is scaled by radius * wheelscale.
+        wheel_xml = re.findall(r"<wheel\b[^>]*>", xml)
+        for w in wheel_xml:
+            pos = np.array([float(v) for v in re.search(r'pos="([^"]+)"', w).group(1).split(",")])
+            radius = float(re.search(r'radius="([^"]+)"', w).group(1))
+            s = radius * wheel_scale / body_scale
+            flip = np.diag([-1.0, 1.0, -1.0]) if pos[0] < 0 else np.eye(3)  # mirror side: turn about z
+            for p in wheel:
+                parts.append(Part((p.positions * s) @ flip.T + pos / body_scale, p.faces, p.uvs, p.image, p.color))
+        return [Part(p.positions @ _TRIGGER_TO_CANON.T, p.faces, p.uvs, p.image, p.color) for p in parts]
+
+    return load
+
+
+def trigger_models() -> list[ModelSource]:
+    if not TRIGGER_ZIP.is_file():
+        return []
+    with zipfile.ZipFile(TRIGGER_ZIP) as z:
+        names = sorted({n.split("/")[1] for n in z.namelist()
+                        if n.startswith("vehicles/") and n.endswith(".vehicle")})
+    return [ModelSource(slug("trigger", n), n, "trigger-rally-data", "GPL-2+ (trigger-rally-data)",
+                        f"Trigger Rally vehicle '{n}' (data.zip)", _trigger_loader(n)) for n in names]
+
+
+def category_models(category: str) -> list[ModelSource]:
+    """All candidate models of 'chairs' or 'cars', sorted by id."""
+    if category == "chairs":
+        models = sh3d_models("chairs")
+    elif category == "cars":
+        models = sh3d_models("cars") + torcs_models() + trigger_models()
+    else:
+        raise ValueError(f"unknown object category {category!r}")
+    return sorted(models, key=lambda m: m.id)

@@ -1,0 +1,68 @@
+"""Contact sheet: a grid of rendered views (rows = models or sequences) from dataset roots on disk."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, ImageDraw
+
+from nvs.atomic import write_bytes
+
+SHEET_AZIMUTHS = (0, 40, 100, 160, 220, 300)
+
+
+def _tile(path: Path, size: int) -> Image.Image:
+    with Image.open(path) as im:
+        return im.convert("RGB").resize((size, size), Image.BICUBIC)
+
+
+def object_rows(root: Path, models: int, size: int, elevation: int = 20) -> list[tuple[str, list[Image.Image]]]:
+    """`models` evenly spaced models of a root (sorted ids), each at SHEET_AZIMUTHS."""
+    ids = sorted({p.stem.rsplit("_", 2)[0] for p in (root / "images").glob("*.png")})
+    pick = [ids[int(i)] for i in np.linspace(0, len(ids) - 1, min(models, len(ids)))]
+    return [(m, [_tile(root / "images" / f"{m}_{az}_{elevation}.png", size) for az in SHEET_AZIMUTHS])
+            for m in pick]
+
+
+def scene_rows(root: Path, sequences: int, size: int, columns: int = 6) -> list[tuple[str, list[Image.Image]]]:
+    """The first `sequences` sequences of a scenes root, `columns` frames spread over each sequence."""
+    frames: dict[str, list[str]] = {}
+    for p in sorted((root / "images").glob("*.png")):
+        frames.setdefault(p.stem.split("_")[0], []).append(p.stem)
+    rows = []
+    for seq in sorted(frames)[:sequences]:
+        ids = frames[seq]
+        pick = [ids[int(i)] for i in np.linspace(0, len(ids) - 1, columns)]
+        rows.append((f"seq {seq}", [_tile(root / "images" / f"{i}.png", size) for i in pick]))
+    return rows
+
+
+def contact_sheet(rows: list[tuple[str, list[Image.Image]]], size: int) -> Image.Image:
+    """Rows of equal-size tiles with a label strip above each row."""
+    label = 14
+    cols = max(len(r[1]) for r in rows)
+    sheet = Image.new("RGB", (cols * size, len(rows) * (size + label)), (255, 255, 255))
+    draw = ImageDraw.Draw(sheet)
+    for r, (name, tiles) in enumerate(rows):
+        y = r * (size + label)
+        draw.text((3, y + 1), name, fill=(0, 0, 0))
+        for c, tile in enumerate(tiles):
+            sheet.paste(tile, (c * size, y + label))
+    return sheet
+
+
+def write_contact_sheet(out: Path, chairs: Path | None, cars: Path | None, drive: Path | None,
+                        models: int = 4, size: int = 128) -> Path:
+    """Compose chairs / cars / drive rows (whichever roots are given) into one PNG at `out`."""
+    rows = []
+    for root in (chairs, cars):
+        if root is not None:
+            rows += object_rows(Path(root), models, size)
+    if drive is not None:
+        rows += scene_rows(Path(drive), models, size)
+    buf = io.BytesIO()
+    contact_sheet(rows, size).save(buf, format="PNG", optimize=True)
+    write_bytes(out, buf.getvalue())
+    return Path(out)
