@@ -46,9 +46,7 @@ def build_module(cfg: DictConfig) -> NVSModule:
     # 'name' labels the model option in tables; everything else is the network's constructor arguments.
     net_cfg = OmegaConf.masked_copy(cfg.model, [k for k in cfg.model if k != "name"])
     net = _instantiate(net_cfg, "model", _convert_="all")
-    if cfg.get("loss") is None:
-        raise UserError("config 'loss' is empty: choose at least one term, e.g. loss=[recon]")
-    losses = {name: _instantiate(node, f"loss.{name}") for name, node in cfg.loss.items()}
+    losses = {name: _instantiate(node, f"loss.{name}") for name, node in (cfg.get("loss") or {}).items()}
     optimizer = _instantiate(cfg.optim, "optim")
     module = NVSModule(net, losses, optimizer, nonfinite=cfg.nonfinite, channels_last=bool(cfg.channels_last),
                        model_name=str(cfg.model.get("name", "nvs")))

@@ -34,8 +34,6 @@ class NVSModule(L.LightningModule):
                  nonfinite: str = "stop", channels_last: bool = False, val_metrics=("l1", "ssim_paper"),
                  model_name: str = "nvs"):
         super().__init__()
-        if not losses:
-            raise UserError("no loss terms enabled: set loss=[...] to at least one of the conf/loss options")
         if nonfinite not in ("stop", "skip"):
             raise UserError(f"nonfinite={nonfinite!r}: expected 'stop' or 'skip'")
         self.net = net
@@ -46,10 +44,16 @@ class NVSModule(L.LightningModule):
         self.val_metrics = tuple(val_metrics)
         self.model_name = model_name
         # What the enabled losses read, fixed at build time.
-        self.train_needs = frozenset().union(*(term.needs for term in losses.values()))
+        self.train_needs = frozenset().union(*(term.needs for term in losses.values())) if losses else frozenset()
         self.test_rows: list[dict] = []
         if channels_last:
             self.net.to(memory_format=torch.channels_last)
+
+    def on_fit_start(self) -> None:
+        if not self.losses:
+            raise UserError("no loss terms enabled: set loss=[...] to at least one of the conf/loss options")
+        if not any(p.requires_grad for p in self.net.parameters()):
+            raise UserError(f"model '{self.model_name}' has no trainable parameters; evaluate it with nvs.evaluate")
 
     # -- steps ---------------------------------------------------------------------------------------------------
     def _prepare(self, batch: Batch) -> Batch:

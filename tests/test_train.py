@@ -85,3 +85,32 @@ def test_short_run_writes_artifacts(objects_root, tmp_path):
 def test_unknown_override_key_is_one_clear_error(objects_root, tmp_path):
     res = _train(objects_root, tmp_path, "model.no_such_key=3")
     assert res.returncode != 0 and "no_such_key" in res.stderr and "Traceback" not in res.stderr
+
+
+def _evaluate(tmp_path, *args):
+    cmd = [sys.executable, "-m", "nvs.evaluate", f"paths.log_dir={tmp_path}", *args]
+    return subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=600)
+
+
+def test_evaluate_checkpoint_and_reference_models(objects_root, tmp_path):
+    res = _train(objects_root, tmp_path / "t", "trainer.max_steps=2", "trainer.val_check_interval=2",
+                 "data.loader.batch_size=2", "loss=[recon]", "test=false")
+    assert res.returncode == 0, res.stderr[-3000:]
+    ckpt = next((tmp_path / "t").rglob("last.ckpt"))
+    out = tmp_path / "e"
+    res = _evaluate(tmp_path, f"ckpt_path={ckpt}", f"out_dir={out}", "data=chairs", f"data.root={objects_root}")
+    assert res.returncode == 0, res.stderr[-3000:]
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["test"]["n_pairs"] == 4 and "depth_sc_inv" in m["test"]
+    assert len((out / "test_per_image.csv").read_text().splitlines()) == 5
+    # The floor: copying the source, evaluated without a checkpoint.
+    res = _evaluate(tmp_path, "model=copy_source", "data=chairs", f"data.root={objects_root}", f"out_dir={out}/c")
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert json.loads((out / "c" / "metrics.json").read_text())["params"] == 0
+    # A checkpoint asked to be another model option: one clear error, no traceback.
+    res = _evaluate(tmp_path, f"ckpt_path={ckpt}", "model=copy_source", f"out_dir={out}/x")
+    assert res.returncode == 2 and "holds model 'nvs'" in res.stderr and "Traceback" not in res.stderr
+    bad = tmp_path / "bad.ckpt"
+    bad.write_bytes(b"not a checkpoint")
+    res = _evaluate(tmp_path, f"ckpt_path={bad}", f"out_dir={out}/y")
+    assert res.returncode == 2 and "bad.ckpt: not a readable checkpoint" in res.stderr

@@ -1,0 +1,108 @@
+"""python -m nvs.evaluate ckpt_path=... [data=...]: test metrics (metrics.json) and per-image CSV of a checkpoint.
+
+Reference models that need no training are evaluated without a checkpoint: ``model=copy_source`` or ``model=gt_warp``.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import hydra
+import lightning as L
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from nvs.build import build_data, build_module, device_name, git_sha, parameter_count
+from nvs.errors import UserError, exits_cleanly
+from nvs.run_files import write_metrics, write_per_image
+
+
+def load_checkpoint(path: str) -> dict:
+    p = Path(path)
+    if not p.is_file():
+        raise UserError(f"ckpt_path={path}: no such checkpoint")
+    try:
+        ckpt = torch.load(p, map_location="cpu", weights_only=False)
+    except Exception as err:  # noqa: BLE001 - any unpickling failure is a bad file for the user
+        raise UserError(f"{path}: not a readable checkpoint ({err.__class__.__name__}: {err})") from None
+    if not isinstance(ckpt, dict) or "state_dict" not in ckpt or not ckpt.get("nvs_config"):
+        raise UserError(f"{path}: not an nvs checkpoint (no state_dict / nvs_config)")
+    return ckpt
+
+
+def run_config(cfg: DictConfig) -> tuple[DictConfig, dict | None]:
+    """The configuration to evaluate: the checkpoint's own, with data (and size) from the CLI when given."""
+    ckpt = None
+    if cfg.ckpt_path:
+        ckpt = load_checkpoint(cfg.ckpt_path)
+        run = OmegaConf.create(ckpt["nvs_config"])
+        if cfg.get("model") is not None and cfg.model.get("name") != run.model.get("name"):
+            raise UserError(f"{cfg.ckpt_path} holds model '{run.model.get('name')}', not '{cfg.model.get('name')}'")
+    elif cfg.get("model") is not None:
+        run = OmegaConf.create({"model": OmegaConf.to_container(cfg.model), "loss": {}, "optim": None,
+                                "nonfinite": "stop", "channels_last": False, "trainer": {"precision": "32-true"}})
+    else:
+        raise UserError("give ckpt_path=... (a trained model) or model=copy_source|gt_warp (no training)")
+    if cfg.get("data") is not None:
+        data = OmegaConf.to_container(cfg.data, resolve=False)
+        if "data" in run:
+            data["size"] = run.data.size  # the network is built for the size it was trained at
+        run.data = data
+    elif "data" not in run:
+        raise UserError("give data=<chairs|cars|drive|...> for a model without a checkpoint")
+    run.seed = int(cfg.seed)
+    run.paths = OmegaConf.to_container(cfg.paths, resolve=True)
+    if cfg.limit:
+        run.data.loader.limit_test_pairs = int(cfg.limit)
+    OmegaConf.resolve(run)
+    return run, ckpt
+
+
+def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
+    run, ckpt = run_config(cfg)
+    L.seed_everything(int(run.seed), workers=True)
+    datamodule = build_data(run)
+    run.model.image_size = run.data.size
+    module = build_module(run)
+    if ckpt is not None:
+        missing, unexpected = module.load_state_dict(ckpt["state_dict"], strict=False)
+        if missing or unexpected:
+            raise UserError(f"{cfg.ckpt_path} does not fit model '{run.model.get('name')}': "
+                            f"{len(missing)} missing and {len(unexpected)} unexpected weights "
+                            f"(e.g. {(missing or unexpected)[0]})")
+    precision = cfg.precision or run.trainer.get("precision", "32-true")
+    trainer = L.Trainer(accelerator="auto", devices=1, precision=precision, logger=False,
+                        enable_progress_bar=False, enable_model_summary=False)
+    t0 = time.perf_counter()
+    trainer.test(module, datamodule=datamodule, verbose=False)
+    elapsed = time.perf_counter() - t0
+    result = {
+        "model": run.model.get("name"),
+        "data": run.data.get("name"),
+        "image_size": run.data.size,
+        "checkpoint": cfg.ckpt_path,
+        "seed": int(run.seed),
+        "params": parameter_count(module.net),
+        "device": device_name(module.device),
+        "precision": str(precision),
+        "git_sha": git_sha(),
+        "eval_ms_per_image": 1000 * elapsed / max(len(module.test_rows), 1),
+        "test": module.test_summary(),
+    }
+    write_per_image(out_dir / "test_per_image.csv", module.test_rows)
+    write_metrics(out_dir / "metrics.json", result)
+    return result
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
+@exits_cleanly
+def main(cfg: DictConfig) -> None:
+    out_dir = Path(cfg.out_dir)
+    result = evaluate(cfg, out_dir)
+    print("test: " + ", ".join(f"{k}={v:.4f}" for k, v in result["test"].items() if isinstance(v, float)))
+    print(f"wrote {out_dir / 'metrics.json'} and {out_dir / 'test_per_image.csv'}")
+
+
+if __name__ == "__main__":
+    main()
