@@ -47,6 +47,11 @@ class _Lines:
         self.lines = text.splitlines()
         self.i = 0
 
+    def at_end(self) -> bool:
+        while self.i < len(self.lines) and not self.lines[self.i].strip():
+            self.i += 1
+        return self.i >= len(self.lines)
+
     def next(self) -> str:
         while self.i < len(self.lines):
             s = self.lines[self.i].strip()
@@ -97,6 +102,8 @@ def _read_object(lines: _Lines, header: str, rot: np.ndarray, loc: np.ndarray, p
             if len(verts):
                 out.append(AcObject(name, texture, verts @ R_w.T + t_w, surfaces, path))
             for _ in range(int(rest)):
+                if lines.at_end():  # some TORCS tracks declare more kids than they hold
+                    return
                 child = lines.next()
                 if not child.startswith("OBJECT"):
                     raise ValueError(f"expected OBJECT, got {child!r}")
