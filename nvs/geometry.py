@@ -16,6 +16,8 @@ from kornia.geometry.conversions import normalize_pixel_coordinates
 from kornia.geometry.depth import depth_to_3d_v2
 from kornia.geometry.linalg import transform_points
 
+# Projections this far (in pixels) outside the border still count as inside: round-off of an exact border hit.
+BORDER_TOLERANCE = 1e-3
 # Points closer than this to the camera plane (in pose units) are treated as behind the camera.
 MIN_DEPTH = 1e-6
 
@@ -123,7 +125,9 @@ def inverse_warp(src: torch.Tensor, depth_tgt: torch.Tensor, K: torch.Tensor, T_
            f"src {tuple(src.shape)} and depth_tgt {tuple(depth_tgt.shape)} disagree in batch or size")
     H, W = src.shape[-2:]
     uv, _, in_front = project_to_source(depth_tgt, K, T_tgt_src)
-    inside = (uv[..., 0] >= 0) & (uv[..., 0] <= W - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= H - 1)
+    tol = BORDER_TOLERANCE
+    u, v = uv[..., 0], uv[..., 1]
+    inside = (u >= -tol) & (u <= W - 1 + tol) & (v >= -tol) & (v <= H - 1 + tol)
     valid = in_front & inside
     warped = sample_at(src, uv, valid)
     return warped, valid[:, None].to(src.dtype)

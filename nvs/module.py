@@ -116,6 +116,13 @@ class NVSModule(L.LightningModule):
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         # The resolved run config travels with the weights so that evaluation can rebuild the same network.
         checkpoint["nvs_config"] = getattr(self, "run_config", None)
+        # Loss networks (frozen VGG) are rebuilt from their weight file, not stored 30 MB at a time.
+        for key in [k for k in checkpoint["state_dict"] if k.startswith("losses.")]:
+            del checkpoint["state_dict"][key]
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        own = {k: v for k, v in super().state_dict().items() if k.startswith("losses.") and k not in state_dict}
+        return super().load_state_dict({**state_dict, **own}, strict=strict, assign=assign)
 
     def configure_optimizers(self):
         params = [p for p in self.parameters() if p.requires_grad]
