@@ -1,0 +1,86 @@
+"""Loss terms are >= 0, zero on a perfect prediction where that holds, and declare what they need."""
+
+import pytest
+import torch
+
+from nvs.losses import DepthConsistencyLoss, EdgeSmoothLoss, ReconLoss, VGGLoss, WarpLoss
+from nvs.models.net import Extras
+from tests.conftest import fixture_batch
+
+
+def _perfect_outputs(batch):
+    tgt = batch["tgt"]
+    scales = [torch.nn.functional.interpolate(tgt, scale_factor=1 / s, mode="area") * 2 - 1 for s in (8, 4, 2)]
+    depth = torch.full_like(batch["depth_tgt"], 2.0)
+    return {
+        "rgb": tgt.clone(),
+        "rgb_scales": scales + [tgt * 2 - 1],
+        "depth": depth,
+        Extras.DEPTH_FROM_TGT: depth.clone(),
+        Extras.DEPTH_SRC: depth.clone(),
+        Extras.WARPED_SRC: tgt.clone(),
+        "warp_valid": torch.ones_like(depth),
+    }
+
+
+def test_final_scale_recon_and_aux_terms_are_zero_on_perfect_prediction():
+    batch = fixture_batch()
+    out = _perfect_outputs(batch)
+    assert ReconLoss(scale_weights=[1.0])(out, batch) == 0
+    assert DepthConsistencyLoss()(out, batch) == 0
+    assert EdgeSmoothLoss()(out, batch) == 0  # constant depth is perfectly smooth
+    assert WarpLoss()(out, batch) == 0
+    assert VGGLoss()(out, batch) == 0
+
+
+def test_terms_are_positive_on_wrong_predictions():
+    batch = fixture_batch()
+    out = _perfect_outputs(batch)
+    out["rgb"] = batch["src"]
+    out["rgb_scales"] = [s.flip(-1) for s in out["rgb_scales"]]
+    out["depth"] = torch.rand_like(out["depth"]) + 1
+    out[Extras.WARPED_SRC] = batch["src"]
+    for term in (ReconLoss(), DepthConsistencyLoss(), EdgeSmoothLoss(), WarpLoss(), VGGLoss()):
+        assert term(out, batch) > 0, term
+
+
+def test_multiscale_weights_apply_finest_first():
+    batch = fixture_batch()
+    batch["tgt"] = torch.full_like(batch["tgt"], 0.25)  # constant: every scale is exact after upsampling
+    out = _perfect_outputs(batch)
+    out["rgb_scales"][0] = out["rgb_scales"][0] + 0.5  # only the coarsest (1/8) scale is wrong
+    assert ReconLoss(scale_weights=[1.0])(out, batch) == 0
+    full = ReconLoss(scale_weights=[1.0, 0.5, 0.2, 0.1])(out, batch)
+    assert full.item() == pytest.approx(0.1 * 0.5, abs=1e-6)
+    out["rgb_scales"][-1] = out["rgb_scales"][-1] + 0.5  # and now the finest
+    assert ReconLoss(scale_weights=[1.0, 0.5, 0.2, 0.1])(out, batch).item() == pytest.approx(0.55, abs=1e-6)
+
+
+def test_warp_loss_ignores_invalid_pixels():
+    batch = fixture_batch()
+    out = _perfect_outputs(batch)
+    out[Extras.WARPED_SRC] = torch.zeros_like(batch["tgt"])
+    out["warp_valid"] = torch.zeros_like(out["warp_valid"])
+    assert WarpLoss()(out, batch) == 0
+
+
+def test_needs_declare_extras():
+    assert DepthConsistencyLoss.needs == {Extras.DEPTH_FROM_TGT}
+    assert EdgeSmoothLoss(on_source=True).needs == {Extras.DEPTH_SRC}
+    assert EdgeSmoothLoss(on_source=False).needs == frozenset()
+    assert WarpLoss.needs == {Extras.WARPED_SRC}
+    assert ReconLoss.needs == frozenset()
+
+
+def test_vgg_loss_has_no_trainable_parameters_and_passes_gradient():
+    batch = fixture_batch()
+    term = VGGLoss()
+    assert not any(p.requires_grad for p in term.parameters())
+    pred = batch["src"].clone().requires_grad_(True)
+    term({"rgb": pred}, batch).backward()
+    assert pred.grad is not None and pred.grad.abs().sum() > 0
+
+
+def test_negative_weight_is_refused():
+    with pytest.raises(ValueError, match="weight"):
+        ReconLoss(weight=-1.0)
