@@ -82,11 +82,14 @@ def eval_pairs(test_models: list[str], per_model: int, seed: int) -> list[tuple[
     pairs = []
     for m in sorted(test_models):
         views = view_stems(m)
-        for _ in range(per_model):
+        chosen: set[tuple[str, str]] = set()
+        while len(chosen) < per_model:  # distinct pairs (the loader rejects duplicates)
             a = rng.choice(views)
             partners = [v for v in views if v != a and azimuth_gap(v[1], a[1]) <= MAX_AZIMUTH_GAP]
             b = rng.choice(partners)
-            pairs.append((a[0], b[0]))
+            if (a[0], b[0]) not in chosen:
+                chosen.add((a[0], b[0]))
+                pairs.append((a[0], b[0]))
     return pairs
 
 
@@ -164,7 +167,8 @@ def render_objects(category: str, out: Path, size: int = 256, seed: int = 0, max
                    "rotation": "Rotation.from_euler('xyz', [-el, az, 0], degrees=True)",
                    "front": "view (0, 0) shows the model's front"},
         "depth": "depth/{stem}.npy float32 z-depth in metres, 0 = background",
-        "lighting": "directional light along the optical axis (intensity 3) + ambient 0.35; double-sided faces",
+        "lighting": "two directional lights fixed in the object frame (key 2.5 from above-front-left, fill 1.0 "
+                    "from above-behind-right) + ambient 0.35; double-sided faces",
         "supersample": supersample,
         "models": [{"id": i, "name": by_id[i].name, "package": by_id[i].package, "licence": by_id[i].licence,
                     "credit": by_id[i].credit} for i in ids],

@@ -1,8 +1,10 @@
 """Offscreen rendering with pyrender on Mesa's software EGL: parts -> pyrender meshes, RGB + metric z-depth.
 
-Lighting (fixed): objects are lit by one directional light attached to the camera (intensity 3, white, shining
-along the optical axis) plus ambient 0.35 of the albedo; surfaces are double sided. Drive scenes are rendered
-unlit (texture colour as is), like a fully ambient-lit scene; TORCS textures carry their own shading.
+Lighting (fixed): objects are lit by two white directional lights fixed in the OBJECT frame (so a surface point
+looks the same from every view, up to the weak specular term): a key light (intensity 2.5) from above-front-left
+and a fill light (1.0) from above-behind-right, plus ambient 0.35 of the albedo; surfaces are double sided,
+non-metallic, roughness 0.9. Drive scenes are rendered unlit (texture colour as is); TORCS textures carry their
+own shading.
 """
 
 from __future__ import annotations
@@ -26,7 +28,19 @@ from PIL import Image  # noqa: E402
 CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 ALPHA_CUTOFF = 0.5
 AMBIENT = 0.35
-LIGHT_INTENSITY = 3.0
+# (direction the light travels, in the object frame: x right, y down, z away from the az=0 camera; intensity)
+OBJECT_LIGHTS = (((0.5, 0.8, 0.6), 2.5), ((-0.6, 0.7, -0.5), 1.0))
+
+
+def _light_pose(direction) -> np.ndarray:
+    """Pose (4,4) of a pyrender directional light (it shines along its node's -z) travelling along `direction`."""
+    z = -np.asarray(direction, dtype=np.float64)
+    z /= np.linalg.norm(z)
+    x = np.cross([0.0, 1.0, 0.0], z)
+    x = x / np.linalg.norm(x) if np.linalg.norm(x) > 1e-6 else np.array([1.0, 0.0, 0.0])
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
+    return T
 
 
 @dataclass
@@ -128,7 +142,10 @@ class Renderer:
                                                 znear=znear, zfar=zfar)
         self.scene = pyrender.Scene(bg_color=list(bg_color) + [1.0], ambient_light=[AMBIENT] * 3)
         self.cam_node = self.scene.add(self.camera)
-        self.light_node = self.scene.add(pyrender.DirectionalLight(color=np.ones(3), intensity=LIGHT_INTENSITY))
+        if lit:
+            for direction, intensity in OBJECT_LIGHTS:
+                self.scene.add(pyrender.DirectionalLight(color=np.ones(3), intensity=intensity),
+                               pose=_light_pose(direction))
         self._r._renderer._program_cache = pyrender.shader_program.ShaderProgramCache(shader_dir=_alpha_shader_dir())
         self._mesh_nodes = []
 
@@ -141,7 +158,6 @@ class Renderer:
         """OpenCV camera-to-world (4,4) -> RGB (S,S,3) uint8, z-depth (S,S) float32 (0 = nothing hit)."""
         pose = T_world_cam @ CV_TO_GL
         self.scene.set_pose(self.cam_node, pose)
-        self.scene.set_pose(self.light_node, pose)
         flags = pyrender.RenderFlags.SKIP_CULL_FACES
         if not self.lit:
             flags |= pyrender.RenderFlags.FLAT
