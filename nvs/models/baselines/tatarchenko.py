@@ -1,0 +1,62 @@
+"""Pixel-generation baseline after Tatarchenko et al. (2016): image and pose branches merged, up-convolutions to RGB."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from nvs.models.baselines import POSE_DIM, BaselineOutputs, check_needs, halvings, pose_code
+from nvs.models.blocks import act, down, up_transposed
+from nvs.models.net import to_image_range, to_model_range
+from nvs.types import Batch, Outputs
+
+
+class Tatarchenko(nn.Module):
+    """Tatarchenko, Dosovitskiy, Brox, "Multi-view 3D Models from Single Images with a Convolutional Network",
+    ECCV 2016.
+
+    As in the paper, a convolutional encoder plus fully connected layers embed the image, a separate fully connected
+    branch embeds the viewpoint, the two codes are concatenated and further fully connected layers and
+    up-convolutions regress the target RGB. What differs: any image size divisible by 16 (the paper used 128^2;
+    here stride-2 4x4 convolutions run down to a 4x4-7x7 map, pooled to 4x4 for the fully connected layers, so layer
+    sizes are ours); the viewpoint is the relative pose [R|t] of ``T_tgt_src`` about the pivot, 12 numbers, for
+    objects and scenes alike (Hou et al. fed cos/sin of the view angles; for objects [R|0] holds exactly those
+    cos/sin products, and it also covers scene camera motion); RGB only, no depth map, so losses that read depth
+    cannot be used; the loss is L1 (``recon`` at the final scale, optionally with ``vgg``) instead of the paper's
+    squared error. LeakyReLU(0.2), no normalisation.
+
+    forward(batch, needs) -> ``rgb`` (B,3,S,S) in [0,1], ``rgb_scales`` [(B,3,S,S) in [-1,1]].
+    """
+
+    provides: frozenset[str] = frozenset()
+
+    def __init__(self, image_size: int, fc_dim: int = 1024, pose_fc_dim: int = 64):
+        super().__init__()
+        k = halvings(image_size)
+        self.bottleneck = image_size // 2 ** k
+        enc = [min(256, 32 * 2 ** i) for i in range(k)]  # S/2 ... S/2^k
+        self.encoder = nn.Sequential(*[down(cin, cout, norm="none") for cin, cout in zip([3] + enc[:-1], enc)])
+        self.image_fc = nn.Sequential(nn.Linear(enc[-1] * 16, fc_dim), act(), nn.Linear(fc_dim, fc_dim), act())
+        self.pose_fc = nn.Sequential(nn.Linear(POSE_DIM, pose_fc_dim), act(), nn.Linear(pose_fc_dim, pose_fc_dim),
+                                     act(), nn.Linear(pose_fc_dim, pose_fc_dim), act())
+        self.joint_fc = nn.Sequential(nn.Linear(fc_dim + pose_fc_dim, fc_dim), act(), nn.Linear(fc_dim, fc_dim), act(),
+                                      nn.Linear(fc_dim, enc[-1] * 16), act())
+        dec = enc[-2::-1] + [32]  # S/2^(k-1) ... S
+        self.decoder = nn.Sequential(*[up_transposed(cin, cout, norm="none")
+                                       for cin, cout in zip([enc[-1]] + dec[:-1], dec)])
+        self.out = nn.Conv2d(dec[-1], 3, 3, padding=1, padding_mode="reflect")
+        self.channels = enc[-1]
+
+    def forward(self, batch: Batch, needs: frozenset[str] = frozenset()) -> Outputs:
+        check_needs("tatarchenko", needs, self.provides)
+        x = self.encoder(to_model_range(batch["src"]))
+        if self.bottleneck != 4:
+            x = F.adaptive_avg_pool2d(x, 4)
+        h = self.image_fc(x.flatten(1))
+        p = self.pose_fc(pose_code(batch["T_tgt_src"], batch["pivot"]).to(h.dtype))
+        x = self.joint_fc(torch.cat([h, p], dim=1)).view(-1, self.channels, 4, 4)
+        if self.bottleneck != 4:
+            x = F.interpolate(x, size=(self.bottleneck,) * 2, mode="bilinear", align_corners=False)
+        rgb = torch.tanh(self.out(self.decoder(x)))
+        return BaselineOutputs("tatarchenko", rgb=to_image_range(rgb), rgb_scales=[rgb])
