@@ -61,7 +61,8 @@ def pose_code(T_tgt_src: torch.Tensor, pivot: torch.Tensor) -> torch.Tensor:
 def halvings(image_size: int) -> int:
     """Stride-2 stages from S down to the bottleneck: as many as keep the map integral and at least 4x4.
 
-    Powers of two end at 4x4 (64 -> 4 stages, 256 -> 6); other multiples of 16 stop where halving again would go odd or below 4 (80 -> 5x5, 96 -> 6x6, 144 -> 9x9).
+    Powers of two end at 4x4 (64 -> 4 stages, 256 -> 6); other multiples of 16 stop at the first size that is odd or
+    would drop below 4 when halved (80 -> 5x5, 96 -> 6x6, 144 -> 9x9).
     """
     if image_size % 16 or image_size < 64:
         raise ValueError(f"image_size={image_size} must be a multiple of 16 and at least 64")
