@@ -24,7 +24,7 @@ class Tatarchenko(nn.Module):
     objects and scenes alike (Hou et al. fed cos/sin of the view angles; for objects [R|0] holds exactly those
     cos/sin products, and it also covers scene camera motion); RGB only, no depth map, so losses that read depth
     cannot be used; the loss is L1 (``recon`` at the final scale, optionally with ``vgg``) instead of the paper's
-    squared error. LeakyReLU(0.2), no normalisation.
+    squared error. LeakyReLU(0.2), no normalisation, He initialisation.
 
     forward(batch, needs) -> ``rgb`` (B,3,S,S) in [0,1], ``rgb_scales`` [(B,3,S,S) in [-1,1]].
     """
@@ -47,6 +47,12 @@ class Tatarchenko(nn.Module):
                                        for cin, cout in zip([enc[-1]] + dec[:-1], dec)])
         self.out = nn.Conv2d(dec[-1], 3, 3, padding=1, padding_mode="reflect")
         self.channels = enc[-1]
+        # Without normalisation, PyTorch's default init shrinks the signal layer by layer until the output no longer
+        # depends on the input; He init for LeakyReLU(0.2) keeps it alive.
+        for m in self.modules():
+            if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d, nn.Linear)):
+                nn.init.kaiming_normal_(m.weight, a=0.2, nonlinearity="leaky_relu")
+                nn.init.zeros_(m.bias)
 
     def forward(self, batch: Batch, needs: frozenset[str] = frozenset()) -> Outputs:
         check_needs("tatarchenko", needs, self.provides)

@@ -1,0 +1,213 @@
+"""Baselines: build from their experiment configs, honour the output contract, train, and fail clearly on bad losses."""
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+import torch.nn.functional as F
+from omegaconf import OmegaConf
+
+from nvs.build import build_module
+from nvs.errors import UserError
+from nvs.geometry import inverse_warp, pose_matrix
+from nvs.models.baselines import RGB_BRANCHES, halvings, pose_code
+from nvs.models.baselines.chen import warp_border
+from nvs.models.baselines.sun import Sun
+from nvs.models.baselines.tatarchenko import Tatarchenko
+from nvs.models.net import Extras
+from tests.conftest import compose_train, fixture_batch
+
+REPO = Path(__file__).resolve().parents[1]
+BASELINES = ["tatarchenko", "chen", "sun"]
+
+
+def _module(name: str, tmp_path, *overrides, data: str = "chairs"):
+    cfg = compose_train([f"experiment={name}_{data}", f"paths.root_dir={tmp_path}", *overrides])
+    cfg.paths.output_dir = str(tmp_path)
+    OmegaConf.resolve(cfg)
+    return build_module(cfg)
+
+
+def _view_pair(B: int = 2, S: int = 64) -> dict:
+    """A batch whose target really is the source seen from the fixture pose (a plane at depth 2.5, white elsewhere)."""
+    batch = fixture_batch(B, S)
+    g = torch.Generator().manual_seed(1)
+    src = F.interpolate(torch.rand(B, 3, 8, 8, generator=g), size=(S, S), mode="bilinear", align_corners=False)
+    depth = torch.full((B, 1, S, S), 2.5)
+    warped, valid = inverse_warp(src, depth, batch["K"], batch["T_tgt_src"])
+    batch.update(src=src, tgt=warped * valid + (1 - valid), depth_tgt=depth)
+    return batch
+
+
+def _train(module, batch, steps: int) -> list[float]:
+    torch.manual_seed(0)
+    opt = module.configure_optimizers()
+    losses = []
+    for i in range(steps):
+        opt.zero_grad()
+        loss = module.training_step(batch, i)
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    return losses
+
+
+# -- config -> module -> forward/backward --------------------------------------------------------------------------
+@pytest.mark.parametrize("name", BASELINES)
+def test_builds_from_experiment_and_runs_forward_backward(name, tmp_path):
+    module = _module(name, tmp_path)
+    assert module.model_name == name
+    batch = fixture_batch()
+    out = module(batch, module.train_needs)
+    assert out["rgb"].shape == (2, 3, 64, 64) and 0 <= out["rgb"].min() and out["rgb"].max() <= 1
+    assert out["rgb_scales"][-1].shape == (2, 3, 64, 64)
+    assert torch.allclose(out["rgb_scales"][-1], out["rgb"] * 2 - 1, atol=1e-6)
+    loss = module.training_step(batch, 0)
+    loss.backward()
+    grads = {n: p.grad for n, p in module.net.named_parameters()}
+    assert torch.isfinite(loss)
+    assert all(g is not None and torch.isfinite(g).all() for g in grads.values()), \
+        [n for n, g in grads.items() if g is None]
+
+
+def test_chen_outputs_depth_and_the_extras_of_the_full_model(tmp_path):
+    module = _module("chen", tmp_path)
+    out = module(fixture_batch(), frozenset({Extras.DEPTH_FROM_TGT, Extras.DEPTH_SRC, Extras.WARPED_SRC}))
+    for key in ("depth", Extras.DEPTH_FROM_TGT, Extras.DEPTH_SRC):
+        assert out[key].shape == (2, 1, 64, 64) and (out[key] > 1).all() and (out[key] < 3).all()  # objects' head
+    assert torch.equal(out[Extras.WARPED_SRC], out["rgb"]) and out["warp_valid"].shape == (2, 1, 64, 64)
+    # The full model's loss list runs on Chen too (it has every extra those terms read).
+    full = _module("chen", tmp_path, "loss=[recon,depth_consistency,edge_smooth,warp]", "loss.recon.scale_weights=[1.0]")
+    assert torch.isfinite(full.training_step(fixture_batch(), 0))
+
+
+@pytest.mark.parametrize("name,size", [("tatarchenko", 80), ("tatarchenko", 128), ("sun", 96), ("sun", 128),
+                                       ("chen", 128)])
+def test_other_image_sizes(name, size, tmp_path):
+    module = _module(name, tmp_path, f"data.size={size}")
+    out = module(fixture_batch(B=1, S=size))
+    assert out["rgb"].shape == (1, 3, size, size)
+
+
+def test_halvings_stop_between_4_and_odd_sizes():
+    assert [halvings(s) for s in (64, 80, 96, 128, 256)] == [4, 4, 4, 5, 6]
+    with pytest.raises(ValueError, match="multiple of 16"):
+        halvings(72)
+
+
+# -- unsupported losses: one clear message --------------------------------------------------------------------------
+@pytest.mark.parametrize("name", ["tatarchenko", "sun"])
+def test_depth_losses_on_models_without_depth_are_one_clear_error(name, tmp_path):
+    module = _module(name, tmp_path, "loss=[recon,depth_consistency]", "loss.recon.scale_weights=[1.0]")
+    with pytest.raises(UserError, match=f"model '{name}' cannot provide 'depth_from_tgt'"):
+        module.training_step(fixture_batch(), 0)
+    # A term that reads a plain output (edge smoothness on the target only reads 'depth'), not an extra.
+    module = _module(name, tmp_path, "loss=[recon,edge_smooth]", "loss.recon.scale_weights=[1.0]",
+                     "loss.edge_smooth.on_source=false")
+    with pytest.raises(UserError, match=f"model '{name}' does not output 'depth'"):
+        module.training_step(fixture_batch(), 0)
+
+
+def test_branch_loss_on_a_model_without_branches_is_one_clear_error(tmp_path):
+    module = _module("tatarchenko", tmp_path, "loss=[recon,branches]")
+    with pytest.raises(UserError, match=f"cannot provide '{RGB_BRANCHES}'"):
+        module.training_step(fixture_batch(), 0)
+
+
+def test_missing_output_reads_like_a_dict(tmp_path):
+    out = _module("tatarchenko", tmp_path).net(fixture_batch())
+    assert out.get("depth") is None and "depth" not in out
+    with pytest.raises(KeyError):
+        out["depth"]
+
+
+# -- what each baseline computes ---------------------------------------------------------------------------------
+def test_pose_code_is_the_relative_pose_about_the_pivot():
+    batch = fixture_batch(B=1)
+    code = pose_code(batch["T_tgt_src"], batch["pivot"])
+    R = batch["T_tgt_src"][0, :3, :3]
+    # An object orbit about its centre is [R|0] about the pivot, whatever the camera distance.
+    assert torch.allclose(code[0].view(3, 4)[:, :3], R) and torch.allclose(code[0].view(3, 4)[:, 3], torch.zeros(3),
+                                                                             atol=1e-6)
+    # Scenes (pivot 0): the camera motion itself.
+    T = pose_matrix(torch.eye(3)[None], torch.tensor([[0.1, -0.2, 0.3]]))
+    assert torch.allclose(pose_code(T, torch.zeros(1, 3)), torch.tensor([[1, 0, 0, 0.1, 0, 1, 0, -0.2, 0, 0, 1, 0.3]]))
+
+
+def test_tatarchenko_output_depends_on_the_pose():
+    torch.manual_seed(0)
+    net = Tatarchenko(64).eval()
+    batch = fixture_batch(B=1)
+    a = net(batch)["rgb"]
+    batch["T_tgt_src"] = torch.eye(4)[None]
+    assert not torch.allclose(a, net(batch)["rgb"])
+
+
+def test_chen_warp_matches_inverse_warp_inside_and_replicates_the_border():
+    batch = fixture_batch(B=1)
+    src, K, T = batch["src"], batch["K"], batch["T_tgt_src"]
+    depth = torch.full((1, 1, 64, 64), 2.5)
+    ours, valid = warp_border(src, depth, K, T)
+    ref, ref_valid = inverse_warp(src, depth, K, T)
+    assert torch.equal(valid, ref_valid) and 0 < valid.mean() < 1
+    assert torch.allclose(ours * valid, ref * valid, atol=1e-6)
+    # Outside the source image: the nearest border pixel, so a flat-coloured border stays that colour (white renders).
+    white = torch.ones_like(src)
+    out, _ = warp_border(white, depth, K, T)
+    assert torch.allclose(out, white, atol=1e-6)
+    # Identity pose: an identity warp whatever the depth.
+    same, same_valid = warp_border(src, depth, K, torch.eye(4)[None])
+    assert torch.allclose(same, src, atol=1e-5) and same_valid.all()
+
+
+def test_sun_starts_as_a_copy_of_the_source_in_its_flow_branch():
+    torch.manual_seed(0)
+    net = Sun(64)
+    batch = fixture_batch()
+    out = net(batch)
+    assert torch.allclose(out[RGB_BRANCHES]["flow"], batch["src"], atol=1e-5)
+    w = out["confidence"]
+    assert w.shape == (2, 2, 64, 64) and torch.allclose(w.sum(1), torch.ones(2, 64, 64), atol=1e-6)
+    blend = w[:, :1] * out[RGB_BRANCHES]["flow"] + w[:, 1:] * out[RGB_BRANCHES]["pixel"]
+    assert torch.allclose(out["rgb"], blend, atol=1e-6)
+
+
+# -- training ---------------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("name", BASELINES)
+def test_loss_falls_in_a_few_steps(name, tmp_path):
+    losses = _train(_module(name, tmp_path, "optim.lr=1e-3"), _view_pair(), 8)
+    assert all(math.isfinite(v) for v in losses)
+    assert min(losses[-3:]) < 0.9 * losses[0], losses
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", BASELINES)
+def test_overfits_one_batch(name, tmp_path):
+    losses = _train(_module(name, tmp_path, "optim.lr=1e-3"), _view_pair(), 50)
+    assert min(losses[-5:]) < 0.6 * losses[0], losses[::5]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", BASELINES)
+def test_short_run_through_train_entry_point(name, objects_root, tmp_path):
+    cmd = [sys.executable, "-m", "nvs.train", f"experiment={name}_chairs", f"data.root={objects_root}",
+           f"paths.log_dir={tmp_path}", "trainer.enable_progress_bar=false", "trainer.max_steps=2",
+           "trainer.val_check_interval=2", "data.loader.batch_size=2"]
+    res = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    m = json.loads(next(tmp_path.rglob("metrics.json")).read_text())
+    assert m["model"] == name and m["params"] > 1_000_000 and m["test"]["n_pairs"] == 4
+    assert ("depth_l1" in m["test"]) == (name == "chen")
+
+
+def test_unsupported_loss_through_train_entry_point_is_one_line(objects_root, tmp_path):
+    cmd = [sys.executable, "-m", "nvs.train", "experiment=tatarchenko_chairs", "loss=[recon,warp]",
+           f"data.root={objects_root}", f"paths.log_dir={tmp_path}", "trainer.enable_progress_bar=false",
+           "trainer.max_steps=1", "data.loader.batch_size=2", "test=false"]
+    res = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert res.returncode == 2, res.stderr[-3000:]
+    assert "model 'tatarchenko' cannot provide 'warped_src'" in res.stderr and "Traceback" not in res.stderr
