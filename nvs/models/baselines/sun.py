@@ -70,7 +70,7 @@ class Sun(nn.Module):
     for the Tatarchenko baseline; the flow is an offset from the identity in normalised coordinates (zero at
     initialisation, i.e. copying the source) with border replication outside the image. Losses: L1 on the blended
     output (``recon`` at the final scale) plus L1 on each module's own prediction (``branches``). The paper's
-    adversarial loss on the pixel module is not implemented (tables mark this row accordingly).
+    adversarial loss on the pixel module is not implemented (a results table should footnote this row).
 
     forward(batch, needs) -> ``rgb`` (B,3,S,S) in [0,1], ``rgb_scales`` [(B,3,S,S) in [-1,1]], ``rgb_branches``
     {"flow", "pixel": (B,3,S,S) in [0,1]}, ``confidence`` (B,2,S,S) softmax weights (flow, pixel).
