@@ -1,0 +1,371 @@
+"""Study files compose; collection, planning and resumption of nvs.sweep; Pareto front; figures' unprojection."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from nvs import pareto, sweep
+from tests.conftest import compose_train
+
+REPO = Path(__file__).resolve().parents[1]
+STUDIES = sorted((REPO / "sweeps").glob("*.yaml"))
+
+
+def _compose_row(study: sweep.Study, row: sweep.Row, seed: int = 0):
+    name = "evaluate" if row.reference else "train"
+    return compose_train([*sweep.row_overrides(study, row), f"seed={seed}"], config_name=name)
+
+
+# -- study files ---------------------------------------------------------------------------------------------------
+def test_the_four_studies_exist():
+    assert {p.stem for p in STUDIES} >= {"comparison_objects", "comparison_drive", "ablation", "depth"}
+
+
+@pytest.mark.parametrize("path", STUDIES, ids=lambda p: p.stem)
+@pytest.mark.parametrize("scale", [{}, {"size": 256, "steps": 140000}], ids=["study-scale", "paper-scale"])
+def test_every_study_row_composes_with_the_real_config(path, scale, tmp_path):
+    study = sweep.load_study(path, **scale)
+    assert study.rows and study.seeds
+    for row in study.rows:
+        cfg = _compose_row(study, row)
+        cfg.paths.output_dir = str(tmp_path)
+        if row.reference:
+            cfg.out_dir = str(tmp_path)
+        OmegaConf.resolve(cfg)
+        assert cfg.data.size == study.size, row.name
+        if row.reference:
+            assert cfg.model.name == row.reference and cfg.data.name == row.data
+        else:
+            assert cfg.trainer.max_steps == study.steps, row.name
+        # Every reference row and every trained row that names its data lands on that dataset.
+        assert row.data is None or cfg.data.name == row.data
+
+
+def test_each_study_carries_both_reference_rows_per_dataset():
+    for path in STUDIES:
+        study = sweep.load_study(path)
+        datasets = {_compose_row(study, r).data.name for r in study.rows if not r.reference}
+        for data in datasets:
+            refs = {r.reference for r in study.rows if r.reference and r.data == data}
+            assert refs == {"copy_source", "gt_warp"}, (path.stem, data)
+
+
+def test_runs_shared_between_studies_have_the_same_config(tmp_path):
+    """A run name used by several studies (chen_chairs, nvs_chairs, ...) must be one job, not a silent conflict."""
+    keys: dict[str, tuple[str, str]] = {}
+    for path in STUDIES:
+        study = sweep.load_study(path)
+        for job in sweep.plan(study, tmp_path):
+            seen = keys.setdefault(job.dir.name, (job.key, study.name))
+            assert seen[0] == job.key, f"{job.dir.name}: {seen[1]} and {study.name} define it differently"
+    assert "nvs_chairs_s0" in keys and "chen_chairs_s0" in keys
+
+
+def test_ablation_rows_switch_what_they_say():
+    study = sweep.load_study(REPO / "sweeps" / "ablation.yaml")
+    cfg = {r.name: _compose_row(study, r) for r in study.rows if not r.reference}
+    full = ["recon", "vgg", "depth_consistency", "edge_smooth", "warp"]
+    assert list(cfg["nvs_chairs"].loss) == full and cfg["nvs_chairs"].model.skips._target_.endswith("WarpedSkips")
+    assert list(cfg["baseline_arch"].loss) == ["recon"] and list(cfg["baseline_arch"].loss.recon.scale_weights) == [1.0]
+    assert cfg["wo_skip"].model.skips._target_.endswith("NoSkips")
+    assert list(cfg["wo_conv0"].model.skips.levels) == ["conv2", "conv3", "conv4"]
+    assert list(cfg["wo_multiscale"].loss) == full and list(cfg["wo_multiscale"].loss.recon.scale_weights) == [1.0]
+    for row, term in (("wo_vgg", "vgg"), ("wo_depth", "depth_consistency"), ("wo_edge", "edge_smooth")):
+        assert list(cfg[row].loss) == [t for t in full if t != term], row
+    assert cfg["chen_chairs"].model.name == "chen"
+
+
+def test_paper_numbers_match_the_paper_tables():
+    def paper(stem, metric):
+        return [r.paper.get(metric) for r in sweep.load_study(REPO / "sweeps" / f"{stem}.yaml").rows if r.paper]
+
+    assert paper("ablation", "l1") == [.0769, .0611, .0584, .0949, .0654, .0602, .0603, .1109, .0618]
+    assert paper("ablation", "ssim_paper") == [.9099, .9228, .9256, .8971, .9166, .9231, .9236, .8862, .9212]
+    assert paper("comparison_objects", "l1") == [.1043, .0810, .0769, .0584, .0491, .0444, .0396, .0286]
+    assert paper("comparison_objects", "ssim_paper") == [.8851, .8993, .9099, .9256, .9226, .9282, .9395, .9493]
+    assert paper("comparison_drive", "l1") == [.3119, .1868, .2354, .1985]
+    assert paper("comparison_drive", "ssim_paper") == [.6191, .6582, .6461, .7043]
+    assert paper("depth", "depth_sc_inv") == [.0583, .0523]
+    assert paper("depth", "depth_l1_rel") == [.0360, .0305]
+
+
+@pytest.mark.parametrize("bad, message", [
+    ({"rows": [{"name": "a", "overrides": ["seed=0,1"]}]}, "is a sweep"),
+    ({"rows": [{"name": "a"}, {"name": "a"}]}, "used twice"),
+    ({"rows": [{"name": "a", "reference": "copy_source"}]}, "names 'data'"),
+    ({"rows": [{"name": "a", "colour": 1}]}, "unknown key"),
+    ({"rows": [{"name": "a b"}]}, "names a directory"),
+    ({"rows": [{"name": "a", "paper": {"acc": 1}}]}, "unknown metric"),
+])
+def test_malformed_study_is_one_clear_error(tmp_path, bad, message):
+    path = tmp_path / "s.yaml"
+    path.write_text(json.dumps({"size": 64, "steps": 2, **bad}))
+    with pytest.raises(sweep.UserError, match=message):
+        sweep.load_study(path)
+
+
+# -- a fabricated multirun directory --------------------------------------------------------------------------------
+STUDY = {
+    "name": "fab", "title": "fabricated", "paper_source": "Table 9", "seeds": [0, 1], "size": 64, "steps": 10,
+    "overrides": ["trainer.enable_progress_bar=false"], "group_by": "data",
+    "rows": [
+        {"name": "full", "label": "Full model", "experiment": "nvs_chairs", "paper": {"l1": 0.0584, "ssim_paper": 0.9256}},
+        {"name": "chen", "label": "Chen", "experiment": "chen_chairs"},
+        {"name": "noskip", "experiment": "nvs_chairs", "overrides": ["model/skips=none"]},
+        {"name": "copy", "reference": "copy_source", "data": "chairs"},
+    ],
+}
+
+
+def _study(tmp_path, **changes) -> sweep.Study:
+    path = tmp_path / "fab.yaml"
+    path.write_text(json.dumps({**STUDY, **changes}))
+    return sweep.load_study(path)
+
+
+def _fake_result(job: sweep.Job, root: Path, l1: float, record: bool = True) -> None:
+    if record:
+        sweep.prepare_job_dir(job, root)
+    else:
+        job.dir.mkdir(parents=True, exist_ok=True)
+    (job.dir / ".hydra").mkdir(exist_ok=True)
+    (job.dir / ".hydra" / "overrides.yaml").write_text(
+        "".join(f"- {o}\n" for o in [*job.overrides, f"seed={job.seed}"]))
+    test = {"l1": l1, "ssim_paper": 0.9, "ssim": 0.8, "psnr": 20.0, "lpips": 0.1, "n_pairs": 4}
+    if job.row.name == "full":
+        test.update(depth_l1=0.05, depth_l1_rel=0.02, depth_l1_inv=0.01, depth_sc_inv=0.03)
+    (job.dir / "metrics.json").write_text(json.dumps({
+        "model": "nvs", "data": "chairs", "image_size": 64, "seed": job.seed, "steps": 10, "train_wall_s": 100.0 + l1,
+        "train_samples_per_s": 1.0, "params": 1234567, "device": "cpu: Fake CPU (2 threads)", "precision": "32-true",
+        "git_sha": "abc123", "eval_ms_per_image": 5.0, "test": test}))
+
+
+def _fake_failure(job: sweep.Job, root: Path, line: str) -> None:
+    sweep.prepare_job_dir(job, root)
+    (job.dir / sweep.FAILED).write_text(line + "\n")
+
+
+@pytest.fixture
+def fabricated(tmp_path):
+    """full: 2 seeds done; chen: s0 done, s1 failed; noskip: s0 done, s1 never ran; copy: done."""
+    study = _study(tmp_path)
+    root = tmp_path / "runs" / study.scale
+    jobs = {(j.row.name, j.seed): j for j in sweep.plan(study, root)}
+    _fake_result(jobs["full", 0], root, 0.10)
+    _fake_result(jobs["full", 1], root, 0.12)
+    _fake_result(jobs["chen", 0], root, 0.20)
+    _fake_failure(jobs["chen", 1], root, "NonFiniteLossError: non-finite training loss at step 7 (recon)")
+    _fake_result(jobs["noskip", 0], root, 0.30)
+    _fake_result(jobs["copy", 0], root, 0.40)
+    return study, root
+
+
+def test_collection_of_a_fabricated_multirun(fabricated, tmp_path):
+    study, root = fabricated
+    results = tmp_path / "results"
+    rc = sweep.run([str(study.path), "--collect-only", str(root), "--results", str(results)])
+    assert rc == 1  # not every job finished
+    with open(results / "fab.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 7  # one line per job, the failed and the missing one included
+    by = {(r["row"], r["seed"]): r for r in rows}
+    assert by["chen", "1"]["status"] == "failed" and "step 7" in by["chen", "1"]["error"]
+    assert by["noskip", "1"]["status"] == "missing"
+    assert float(by["full", "1"]["l1"]) == pytest.approx(0.12)
+    assert by["full", "0"]["overrides"].startswith("experiment=nvs_chairs") and by["full", "0"]["paper_l1"] == "0.0584"
+    assert float(by["full", "0"]["depth_sc_inv"]) == pytest.approx(0.03) and by["chen", "0"]["depth_sc_inv"] == ""
+
+    md = (results / "fab.md").read_text()
+    for field in ("| command | `python -m nvs.sweep", "| git SHA |", "| date |", "| device | cpu: Fake CPU",
+                  "| image size | 64² |", "| steps | 10 |", "| seeds | 0, 1"):
+        assert field in md, field
+    line = {ln.split("|")[1].strip(): ln for ln in md.splitlines() if ln.startswith("| ") and "|" in ln[2:]}
+    # mean ± sample std of 0.10 and 0.12; the paper's number beside ours, labelled as such.
+    assert "| 2/2 | 0.1100 ± 0.0141 |" in line["Full model"] and "| 0.0584 | 0.9256 |" in line["Full model"]
+    assert "Paper L1" in md and "real datasets at 256²" in md and "Table 9" in md
+    assert "**FAILED** s1 failed: NonFiniteLossError: non-finite training loss at step 7" in line["Chen"]
+    assert "| 1/2 | 0.2000 |" in line["Chen"]
+    assert "s1 missing" in line["noskip"]
+    assert "| 1/1 | 0.4000 |" in line["copy (reference)"]
+    assert "depth sc-inv" in md  # a depth metric some row has gets its column
+
+
+def test_mean_std_is_the_sample_std():
+    assert sweep.mean_std([1.0, 2.0, 3.0]) == (2.0, 1.0)
+    assert sweep.mean_std([0.5]) == (0.5, None)
+    assert sweep.mean_std([None]) == (None, None)
+
+
+# -- planning: what a (re-)run launches -----------------------------------------------------------------------------
+def test_planning_skips_done_and_relaunches_the_rest(fabricated):
+    study, root = fabricated
+    jobs = sweep.plan(study, root)
+    status = {(j.row.name, j.seed): j.status for j in jobs}
+    assert status == {("full", 0): "done", ("full", 1): "done", ("chen", 0): "done", ("chen", 1): "failed",
+                      ("noskip", 0): "done", ("noskip", 1): "missing", ("copy", 0): "done"}
+    launch = {(j.row.name, j.seed) for j in sweep.to_launch(jobs)}
+    assert launch == {("chen", 1), ("noskip", 1)}
+    assert {(j.row.name, j.seed) for j in sweep.to_launch(jobs, retry_failed=False)} == {("noskip", 1)}
+    assert len(sweep.to_launch(jobs, force=True)) == len(jobs)
+
+
+def test_a_changed_config_is_stale_and_moved_aside_before_relaunch(fabricated, tmp_path):
+    study, root = fabricated
+    changed = _study(tmp_path, steps=10, overrides=["trainer.enable_progress_bar=false", "optim.lr=0.001"])
+    jobs = {(j.row.name, j.seed): j for j in sweep.plan(changed, root)}
+    assert jobs["full", 0].status == "stale" and jobs["copy", 0].status == "done"  # reference rows ignore optim
+    assert jobs["full", 0] in sweep.to_launch(list(jobs.values()))
+    sweep.prepare_job_dir(jobs["full", 0], root)
+    assert not (jobs["full", 0].dir / "metrics.json").exists()  # the old result can no longer be mistaken for new
+    assert list((root / ".stale").glob("full_s0.*/metrics.json"))
+    assert sweep.job_status(jobs["full", 0].dir, jobs["full", 0].key)[0] == "missing"
+
+
+def test_placement_only_overrides_do_not_change_the_key(tmp_path):
+    study = _study(tmp_path)
+    a = sweep.plan(study, tmp_path / "a")
+    b = sweep.plan(study, tmp_path / "b", extra=("trainer.enable_progress_bar=true", "hydra/launcher=joblib"))
+    c = sweep.plan(study, tmp_path / "c", extra=("trainer.max_epochs=3",))
+    assert [j.key for j in a] == [j.key for j in b]
+    assert all(x.key != y.key for x, y in zip(a, c) if not x.row.reference)
+    assert len({j.key for j in a}) == len(a)  # every (row, seed) is its own job
+
+
+def test_an_interrupted_job_is_incomplete_and_relaunched(fabricated):
+    study, root = fabricated
+    job = next(j for j in sweep.plan(study, root) if (j.row.name, j.seed) == ("noskip", 1))
+    sweep.prepare_job_dir(job, root)
+    (job.dir / "checkpoints").mkdir()
+    (job.dir / "checkpoints" / "last.ckpt").write_bytes(b"x")
+    assert sweep.job_status(job.dir, job.key) == ("incomplete", "")
+    sweep.prepare_job_dir(job, root)  # relaunching keeps the checkpoint that ckpt_path=auto resumes from
+    assert (job.dir / "checkpoints" / "last.ckpt").is_file()
+
+
+def test_last_error_line():
+    log = "Seed set to 0\nTraceback (most recent call last):\n  File x\nValueError: bad value\nsome trailing note\n"
+    assert sweep.last_error_line(log) == "ValueError: bad value"
+    assert sweep.last_error_line("warn\nerror: data root missing\n") == "error: data root missing"
+    assert sweep.last_error_line("just text\n") == "just text"
+
+
+def test_parallel_launch_never_oversubscribes_the_cores(monkeypatch):
+    monkeypatch.setattr(sweep, "_cores", lambda: 8)
+    launch = sweep.Launch.local(jobs=4)
+    assert launch.threads == 2 and "hydra/launcher=joblib" in launch.hydra_overrides
+    assert "hydra.launcher.n_jobs=4" in launch.hydra_overrides
+    assert sweep.Launch.local(jobs=1).threads == 8 and sweep.Launch.local(jobs=1).hydra_overrides == ()
+    with pytest.raises(sweep.UserError, match="cores"):
+        sweep.Launch.local(jobs=4, threads=4)
+
+
+def test_multirun_command_puts_each_job_in_its_own_directory(tmp_path):
+    study = _study(tmp_path)
+    row = study.rows[0]
+    cmd = sweep.multirun_command(study, row, [0, 1], tmp_path, sweep.Launch(jobs=1, threads=2))
+    assert cmd[1:4] == ["-m", "nvs.train", "-m"] and "seed=0,1" in cmd
+    assert f"hydra.sweep.dir={tmp_path.resolve()}" in cmd and "hydra.sweep.subdir=full_s${seed}" in cmd
+    ref = sweep.multirun_command(study, study.rows[3], [0], tmp_path, sweep.Launch())
+    assert ref[2] == "nvs.evaluate" and "model=copy_source" in ref and not any("max_steps" in c for c in ref)
+
+
+# -- Pareto and figures ----------------------------------------------------------------------------------------------
+def test_pareto_front_by_hand():
+    cost = [1.0, 2.0, 3.0, 2.5, 1.0]
+    err = [0.5, 0.3, 0.1, 0.4, 0.6]
+    # (2.5, 0.4) is beaten by (2.0, 0.3); (1.0, 0.6) by (1.0, 0.5).
+    assert pareto.pareto_front(cost, err) == [True, True, True, False, False]
+
+
+def test_pareto_report_from_sweep_csv(fabricated, tmp_path):
+    study, root = fabricated
+    results = tmp_path / "results"
+    sweep.run([str(study.path), "--collect-only", str(root), "--results", str(results)])
+    md, png = pareto.run([str(results / "fab.csv"), "--results", str(results)])
+    text = md.read_text()
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "## chairs" in text and "copy" not in text.split("## chairs")[1]  # reference rows are not methods
+    full = next(ln for ln in text.splitlines() if ln.startswith("| Full model"))
+    assert "| 0.1100 |" in full and full.count("★") == 4  # lowest L1 at every cost in this fabricated set
+
+
+def test_unproject_inverts_the_projection():
+    from nvs.figures import unproject
+
+    K = torch.tensor([[100.0, 0, 31.5], [0, 120.0, 31.5], [0, 0, 1]], dtype=torch.float64)
+    depth = torch.rand(64, 64, dtype=torch.float64) + 1
+    pts = unproject(depth, K)
+    proj = pts @ K.T
+    uv = proj[:, :2] / proj[:, 2:]
+    v, u = torch.meshgrid(torch.arange(64.0), torch.arange(64.0), indexing="ij")
+    assert torch.allclose(uv, torch.stack([u, v], -1).reshape(-1, 2).double(), atol=1e-9)
+    assert torch.allclose(pts[:, 2], depth.reshape(-1))
+    assert torch.allclose(pts[0], torch.tensor([-31.5 / 100, -31.5 / 120, 1.0], dtype=torch.float64) * depth[0, 0])
+
+
+# -- a tiny real sweep end to end ------------------------------------------------------------------------------------
+def _sweep(*args):
+    return subprocess.run([sys.executable, "-m", "nvs.sweep", *args], cwd=REPO, capture_output=True, text=True,
+                          timeout=900)
+
+
+@pytest.mark.slow
+def test_tiny_sweep_end_to_end_then_rerun_launches_nothing(objects_root, tmp_path):
+    study = tmp_path / "tiny.yaml"
+    study.write_text(json.dumps({
+        "name": "tiny", "seeds": [0], "size": 64, "steps": 2,
+        "overrides": [f"data.root={objects_root}", "trainer.val_check_interval=2", "data.loader.batch_size=2",
+                      "trainer.limit_val_batches=1", "trainer.enable_progress_bar=false"],
+        "rows": [{"name": "recon_only", "experiment": "nvs_chairs", "overrides": ["loss=[recon]"]},
+                 {"name": "copy", "reference": "copy_source", "data": "chairs"}]}))
+    runs, results = tmp_path / "runs", tmp_path / "results"
+    args = [str(study), "--runs", str(runs), "--results", str(results)]
+    res = _sweep(*args)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "launching 2" in res.stderr
+    job = runs / "64px_2steps" / "recon_only_s0"
+    metrics = json.loads((job / "metrics.json").read_text())
+    assert metrics["steps"] == 2 and metrics["test"]["n_pairs"] == 4
+    assert (job / sweep.JOB_RECORD).is_file() and (job / ".hydra" / "overrides.yaml").is_file()
+    assert (job / sweep.STDERR).is_file()  # the job's own stderr, kept by the Hydra callback
+    assert "(2 threads)" in metrics["device"] or "threads)" in metrics["device"]
+    md = (results / "tiny.md").read_text()
+    assert "| recon_only | 1/1 |" in md and "| copy (reference) | 1/1 |" in md
+    stamps = {p: p.stat().st_mtime_ns for p in runs.rglob("metrics.json")}
+    assert len(stamps) == 2
+
+    again = _sweep(*args)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert "2 done; launching 0" in again.stderr and "[sweep] $" not in again.stderr  # no multirun started
+    assert {p: p.stat().st_mtime_ns for p in runs.rglob("metrics.json")} == stamps
+
+    from nvs.figures import run as figures
+
+    written = figures([str(study), "--root", str(runs / "64px_2steps"), "--out", str(results), "--pairs", "2"])
+    assert {p.name for p in written} == {"tiny_qualitative_chairs.png", "tiny_depth_points.png", "tiny_curves.png"}
+
+
+@pytest.mark.slow
+def test_failed_jobs_are_recorded_with_their_error_line(objects_root, tmp_path):
+    study = tmp_path / "bad.yaml"
+    study.write_text(json.dumps({
+        "name": "bad", "seeds": [0, 1], "size": 64, "steps": 2,
+        "overrides": ["trainer.val_check_interval=2", "data.loader.batch_size=2", "trainer.enable_progress_bar=false",
+                      "loss=[recon]"],
+        # sys.exit inside the job (a UserError) ends the multirun process; the second seed must still get its turn.
+        "rows": [{"name": "nodata", "experiment": "nvs_chairs", "overrides": [f"data.root={tmp_path}/none"]}]}))
+    res = _sweep(str(study), "--runs", str(tmp_path / "runs"), "--results", str(tmp_path / "results"))
+    assert res.returncode == 1
+    for seed in (0, 1):
+        failed = (tmp_path / "runs" / "64px_2steps" / f"nodata_s{seed}" / sweep.FAILED).read_text()
+        assert failed.startswith("error:") and "does not exist" in failed
+    md = (tmp_path / "results" / "bad.md").read_text()
+    assert "**FAILED** s0, s1 failed: error:" in md
