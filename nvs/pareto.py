@@ -112,7 +112,9 @@ def plot(agg: pd.DataFrame) -> bytes:
                 for _, r in g.iterrows():
                     ax.annotate(str(r["run"]), (r[cost], r[err]), fontsize=7, xytext=(3, 3),
                                 textcoords="offset points")
-            ax.set_xscale("log")
+            spread = agg[cost].dropna()
+            if len(spread) and spread.min() > 0 and spread.max() / spread.min() > 10:
+                ax.set_xscale("log")  # costs spanning decades (pixel generator vs full model) stay readable
             ax.set_xlabel(cost_label)
             ax.set_ylabel(f"{err_label} ({'higher' if higher else 'lower'} is better)")
             ax.grid(True, which="both", alpha=0.3)

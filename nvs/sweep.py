@@ -128,6 +128,9 @@ def _check_overrides(where: str, overrides: list[Any]) -> tuple[str, ...]:
     for o in parsed:
         if o.is_sweep_override():
             raise UserError(f"{where}: override '{o.input_line}' is a sweep; make each value its own row")
+        # The seed names the job directory and the size names the scale: both belong to the study, not a row.
+        if o.key_or_group in ("seed", "data.size"):
+            raise UserError(f"{where}: '{o.input_line}' is set by the study ('seeds:' / 'size:', --seeds / --size)")
     return tuple(overrides)
 
 
@@ -565,7 +568,9 @@ def collect(jobs: list[Job]) -> list[dict]:
         if j.status == "incomplete":
             error = "interrupted; re-run the study to resume from last.ckpt"
         elif j.status == "stale":
-            error = "result is from a different config; re-run the study"
+            old = (_read_json(j.dir / JOB_RECORD) or {}).get("config")
+            changed = ", ".join(_changed_keys(old, j.fingerprint)[:6]) if old else "no sweep_job.json"
+            error = f"result is from a different config ({changed}); re-run the study"
         rec = {
             "study": j.study, "row": j.row.name, "label": j.row.label, "kind": j.kind,
             "data": m.get("data") or j.data, "seed": j.seed, "status": j.status, "error": error,
@@ -574,12 +579,20 @@ def collect(jobs: list[Job]) -> list[dict]:
             "train_wall_s": _num(m.get("train_wall_s")), "train_samples_per_s": _num(m.get("train_samples_per_s")),
             "eval_ms_per_image": _num(m.get("eval_ms_per_image")), "steps": m.get("steps"),
             "image_size": m.get("image_size"), "precision": m.get("precision"), "device": m.get("device"),
-            "git_sha": m.get("git_sha"), "run_dir": str(j.dir),
+            "git_sha": m.get("git_sha"), "run_dir": _shown_path(j.dir),
             "overrides": " ".join(_read_overrides(j.dir)) if j.status == "done" else "",
             **{f"paper_{k}": j.row.paper.get(k) for k in METRICS},
         }
         records.append(rec)
     return records
+
+
+def _shown_path(p: Path) -> str:
+    """Relative to the working directory when inside it (committed tables should not carry a machine's paths)."""
+    try:
+        return Path(p).resolve().relative_to(Path.cwd().resolve()).as_posix()
+    except ValueError:
+        return str(p)
 
 
 def _num(v) -> float | None:
@@ -692,9 +705,9 @@ def render_markdown(study: Study, records: list[dict], provenance: dict) -> str:
     groups: dict[str | None, list[dict]] = {}
     for r in rows:
         groups.setdefault(r["data"] if study.group_by == "data" else None, []).append(r)
+    paper_titles = [f"Paper {'SSIM' if m == 'ssim_paper' else METRIC_FORMAT[m][0]}" for m in paper_metrics]
     header = ["Method", "n", *[f"{METRIC_FORMAT[m][0]} {METRIC_FORMAT[m][1]}" for m in present],
-              "Params", "Train (s)", "Eval (ms/img)", *[f"Paper {'SSIM' if m == 'ssim_paper' else METRIC_FORMAT[m][0]}" for m in paper_metrics],
-              "Status"]
+              "Params", "Train (s)", "Eval (ms/img)", *paper_titles, "Status"]
     for group, grows in groups.items():
         if group is not None:
             lines += [f"## {group}", ""]
@@ -758,6 +771,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--dry-run", action="store_true", help="print the plan and the commands; launch and write nothing")
     p.add_argument("--skip-failed", action="store_true", help="do not retry jobs that failed before")
     p.add_argument("--force", action="store_true", help="re-run every job (old directories go to <root>/.stale)")
+    p.add_argument("--figures", action="store_true", help="also draw the study's figures (nvs.figures) into "
+                   "--results from the finished jobs")
     return p
 
 
@@ -807,6 +822,12 @@ def run(argv: list[str] | None = None) -> int:
     counts = collections.Counter(j.status for j in jobs)
     print(f"[sweep] wrote {csv_path} and {md_path} ("
           + ", ".join(f"{n} {s}" for s, n in sorted(counts.items())) + ")", file=sys.stderr)
+    if args.figures:
+        from nvs.figures import Run, make_figures
+
+        runs = [Run(j.dir, j.row.label, j.data or "", bool(j.row.reference)) for j in jobs if j.status == "done"]
+        for path in make_figures(runs, Path(args.results), study.results_stem) if runs else []:
+            print(f"[sweep] wrote {path}", file=sys.stderr)
     return 0 if counts.get("done", 0) == len(jobs) else 1
 
 
@@ -816,6 +837,9 @@ def main(argv: list[str] | None = None) -> None:
     except UserError as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)
+    except KeyboardInterrupt:
+        print("[sweep] interrupted; run the same command again to resume", file=sys.stderr)
+        sys.exit(130)
 
 
 if __name__ == "__main__":

@@ -104,6 +104,8 @@ def test_paper_numbers_match_the_paper_tables():
     ({"rows": [{"name": "a", "colour": 1}]}, "unknown key"),
     ({"rows": [{"name": "a b"}]}, "names a directory"),
     ({"rows": [{"name": "a", "paper": {"acc": 1}}]}, "unknown metric"),
+    ({"rows": [{"name": "a", "overrides": ["seed=3"]}]}, "set by the study"),
+    ({"overrides": ["data.size=128"], "rows": [{"name": "a"}]}, "set by the study"),
 ])
 def test_malformed_study_is_one_clear_error(tmp_path, bad, message):
     path = tmp_path / "s.yaml"
@@ -117,7 +119,8 @@ STUDY = {
     "name": "fab", "title": "fabricated", "paper_source": "Table 9", "seeds": [0, 1], "size": 64, "steps": 10,
     "overrides": ["trainer.enable_progress_bar=false"], "group_by": "data",
     "rows": [
-        {"name": "full", "label": "Full model", "experiment": "nvs_chairs", "paper": {"l1": 0.0584, "ssim_paper": 0.9256}},
+        {"name": "full", "label": "Full model", "experiment": "nvs_chairs",
+         "paper": {"l1": 0.0584, "ssim_paper": 0.9256}},
         {"name": "chen", "label": "Chen", "experiment": "chen_chairs"},
         {"name": "noskip", "experiment": "nvs_chairs", "overrides": ["model/skips=none"]},
         {"name": "copy", "reference": "copy_source", "data": "chairs"},
@@ -223,6 +226,8 @@ def test_a_changed_config_is_stale_and_moved_aside_before_relaunch(fabricated, t
     jobs = {(j.row.name, j.seed): j for j in sweep.plan(changed, root)}
     assert jobs["full", 0].status == "stale" and jobs["copy", 0].status == "done"  # reference rows ignore optim
     assert jobs["full", 0] in sweep.to_launch(list(jobs.values()))
+    record = next(r for r in sweep.collect([jobs["full", 0]]))
+    assert record["status"] == "stale" and "optim.lr" in record["error"] and record["l1"] is None
     sweep.prepare_job_dir(jobs["full", 0], root)
     assert not (jobs["full", 0].dir / "metrics.json").exists()  # the old result can no longer be mistaken for new
     assert list((root / ".stale").glob("full_s0.*/metrics.json"))
@@ -342,15 +347,12 @@ def test_tiny_sweep_end_to_end_then_rerun_launches_nothing(objects_root, tmp_pat
     stamps = {p: p.stat().st_mtime_ns for p in runs.rglob("metrics.json")}
     assert len(stamps) == 2
 
-    again = _sweep(*args)
+    again = _sweep(*args, "--figures")
     assert again.returncode == 0, again.stderr[-3000:]
     assert "2 done; launching 0" in again.stderr and "[sweep] $" not in again.stderr  # no multirun started
     assert {p: p.stat().st_mtime_ns for p in runs.rglob("metrics.json")} == stamps
-
-    from nvs.figures import run as figures
-
-    written = figures([str(study), "--root", str(runs / "64px_2steps"), "--out", str(results), "--pairs", "2"])
-    assert {p.name for p in written} == {"tiny_qualitative_chairs.png", "tiny_depth_points.png", "tiny_curves.png"}
+    for name in ("tiny_qualitative_chairs.png", "tiny_depth_points.png", "tiny_curves.png"):
+        assert (results / name).read_bytes()[:4] == b"\x89PNG", name
 
 
 @pytest.mark.slow
