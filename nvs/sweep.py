@@ -438,16 +438,16 @@ def _exception_line(err: BaseException) -> str:
     return f"{type(err).__name__}: {lines[0]}" if lines else type(err).__name__
 
 
-_ERROR_LINE = re.compile(r"^(error:|\w*(Error|Exception|Interrupt|Exit)\b)|Killed|out of memory", re.IGNORECASE)
+_ERROR_LINE = re.compile(r"^(error:|[\w.]*(Error|Exception|Interrupt|Exit)\b)|Killed|out of memory", re.IGNORECASE)
 
 
-def last_error_line(text: str) -> str:
-    """The last line that reads like an error (``error: ...``, ``ValueError: ...``), else the last line."""
+def last_error_line(text: str, fallback: bool = True) -> str:
+    """The last line that reads like an error (``error: ...``, ``pkg.ValueError: ...``), else the last line."""
     lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
     for ln in reversed(lines):
         if _ERROR_LINE.search(ln):
             return ln
-    return lines[-1] if lines else ""
+    return lines[-1] if lines and fallback else ""
 
 
 # -- launching -----------------------------------------------------------------------------------------------------
@@ -527,7 +527,8 @@ def launch_row(study: Study, jobs: list[Job], root: Path, launch: Launch, extra:
             if j in started and j.status in ("incomplete", "missing"):
                 # Died without an exception Hydra could catch (sys.exit, a killed worker): its own stderr says why.
                 log = (j.dir / STDERR).read_text(errors="replace") if (j.dir / STDERR).exists() else ""
-                j.error = last_error_line(log) or last_error_line(tail) or f"no result (multirun exit code {rc})"
+                j.error = (last_error_line(log, fallback=False) or last_error_line(tail, fallback=False)
+                           or f"no result (multirun exit code {rc}{'; killed by a signal' if rc < 0 else ''})")
                 write_text(j.dir / FAILED, j.error + "\n")
                 j.status = "failed"
         if not started:
