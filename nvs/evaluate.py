@@ -88,6 +88,7 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
         "precision": str(precision),
         "git_sha": git_sha(),
         "eval_ms_per_image": 1000 * elapsed / max(len(module.test_rows), 1),
+        "eval_forward_ms_per_image": module.test_forward_ms_per_image(),
         "test": module.test_summary(),
     }
     write_per_image(out_dir / "test_per_image.csv", module.test_rows)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 
 import lightning as L
@@ -46,6 +47,7 @@ class NVSModule(L.LightningModule):
         # What the enabled losses read, fixed at build time.
         self.train_needs = frozenset().union(*(term.needs for term in losses.values())) if losses else frozenset()
         self.test_rows: list[dict] = []
+        self.test_forward_s = 0.0
         if channels_last:
             self.net.to(memory_format=torch.channels_last)
 
@@ -91,7 +93,13 @@ class NVSModule(L.LightningModule):
             self.log(f"val/{name}", M.IMAGE_METRICS[name](out["rgb"].float(), batch["tgt"]).mean(), batch_size=bs)
 
     def test_step(self, batch: Batch, batch_idx: int):
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+        t0 = time.perf_counter()
         out = self(batch)
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+        self.test_forward_s += time.perf_counter() - t0
         depth_gt = batch.get("depth_tgt")
         depth_pred = out.get("depth") if depth_gt is not None else None
         values = M.compute_all(out["rgb"].float(), batch["tgt"], depth_pred, depth_gt)
@@ -102,6 +110,11 @@ class NVSModule(L.LightningModule):
 
     def on_test_epoch_start(self):
         self.test_rows = []
+        self.test_forward_s = 0.0
+
+    def test_forward_ms_per_image(self) -> float | None:
+        """Forward time alone (no metrics) per test pair of the last test epoch."""
+        return 1000 * self.test_forward_s / len(self.test_rows) if self.test_rows else None
 
     def test_summary(self) -> dict[str, float]:
         """Mean of every per-image metric over the test pairs (NaN entries, e.g. no valid depth, are ignored)."""

@@ -18,10 +18,13 @@ from nvs.run_files import write_metrics, write_per_image
 
 
 class _Throughput(L.Callback):
-    """Wall time and samples/s of the fit (validation excluded from samples, included in wall time)."""
+    """Wall time and samples/s of the fit (validation excluded from samples, included in wall time).
+
+    Its state travels in checkpoints, so a resumed run reports the time and samples of all its segments.
+    """
 
     def __init__(self):
-        self.samples, self.start, self.train_s = 0, None, 0.0
+        self.samples, self.start, self.prior_s, self.train_s = 0, None, 0.0, 0.0
 
     def on_train_start(self, trainer, pl_module):
         self.start = time.perf_counter()
@@ -30,7 +33,14 @@ class _Throughput(L.Callback):
         self.samples += batch["src"].shape[0]
 
     def on_train_end(self, trainer, pl_module):
-        self.train_s = time.perf_counter() - self.start
+        self.train_s = self.prior_s + time.perf_counter() - self.start
+
+    def state_dict(self):
+        elapsed = time.perf_counter() - self.start if self.start is not None else 0.0
+        return {"train_s": self.prior_s + elapsed, "samples": self.samples}
+
+    def load_state_dict(self, state_dict):
+        self.prior_s, self.samples = float(state_dict["train_s"]), int(state_dict["samples"])
 
 
 def _resume_path(cfg: DictConfig, out_dir: Path) -> str | None:
@@ -78,7 +88,8 @@ def run(cfg: DictConfig, out_dir: Path) -> dict:
         t0 = time.perf_counter()
         trainer.test(module, datamodule=datamodule, ckpt_path=ckpt, verbose=False)
         n = max(len(module.test_rows), 1)
-        result["eval_ms_per_image"] = 1000 * (time.perf_counter() - t0) / n
+        result["eval_ms_per_image"] = 1000 * (time.perf_counter() - t0) / n  # whole test loop, metrics included
+        result["eval_forward_ms_per_image"] = module.test_forward_ms_per_image()
         result["checkpoint"] = ckpt
         result["test"] = module.test_summary()
         write_per_image(out_dir / "test_per_image.csv", module.test_rows)
