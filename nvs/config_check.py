@@ -10,7 +10,7 @@ replaces. The rule is by kind, not exact type: a number may replace a number (``
 
 from __future__ import annotations
 
-from collections.abc import Collection, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -119,3 +119,25 @@ def check_cli_overrides(config_name: str, overrides: Sequence[str], conf_dir: st
     if not assignments:
         return
     check_types(compose(config_name=config_name, overrides=selections), assignments)
+
+
+def model_mismatch(asked: Mapping, held: Mapping, prefix: str = "model") -> str | None:
+    """First difference between the model config a command asks for and the one a checkpoint was trained with.
+
+    ``asked``, ``held``: plain containers (``OmegaConf.to_container``). ``image_size`` follows the checkpoint's data
+    and values still holding an interpolation (``${data.depth_head}``) are the data's business; both are skipped.
+    Returns 'key: the checkpoint has X, the command asks for Y', or None when they agree.
+    """
+    for key in sorted(set(asked) | set(held)):
+        if key == "image_size":
+            continue
+        a, h = asked.get(key, "<absent>"), held.get(key, "<absent>")
+        if isinstance(a, str) and "${" in a:
+            continue
+        if isinstance(a, Mapping) and isinstance(h, Mapping):
+            inner = model_mismatch(a, h, f"{prefix}.{key}")
+            if inner:
+                return inner
+        elif a != h:
+            return f"{prefix}.{key}: the checkpoint has {h!r}, the command asks for {a!r}"
+    return None

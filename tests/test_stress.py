@@ -1,0 +1,272 @@
+"""Numerical stability: geometry round trips and batching (hypothesis), finiteness under extreme inputs, float64
+gradcheck through the warp and every loss term, the non-finite loss guard, and the stress report itself."""
+
+import json
+import math
+
+import pytest
+import torch
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
+from kornia.geometry.camera import project_points, unproject_points
+from omegaconf import OmegaConf
+from scipy.spatial.transform import Rotation
+
+import nvs.train
+from nvs import stress
+from nvs.geometry import inverse_warp, invert_pose, pose_matrix, project_to_source
+from nvs.losses import LossTerm
+from nvs.module import NonFiniteLossError
+from tests.conftest import compose_train
+
+PROPERTY = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+# -- geometry properties --------------------------------------------------------------------------------------------
+@st.composite
+def cameras(draw, max_size=9):
+    """(H, W, K (1,3,3) float64, T (1,4,4) float64, depth (1,1,H,W) float64) with any rotation and a bounded motion."""
+    H, W = draw(st.integers(2, max_size)), draw(st.integers(2, max_size))
+    f = draw(st.floats(0.5, 1e4))
+    cx, cy = draw(st.floats(-2.0, W + 1.0)), draw(st.floats(-2.0, H + 1.0))
+    K = torch.tensor([[[f, 0.0, cx], [0.0, f * draw(st.floats(0.5, 2.0)), cy], [0.0, 0.0, 1.0]]], dtype=torch.float64)
+    rotvec = draw(st.lists(st.floats(-math.pi, math.pi), min_size=3, max_size=3))
+    R = torch.from_numpy(Rotation.from_rotvec(rotvec).as_matrix())[None]
+    t = torch.tensor([draw(st.lists(st.floats(-10.0, 10.0), min_size=3, max_size=3))], dtype=torch.float64)
+    seed = draw(st.integers(0, 2**16))
+    scale = draw(st.floats(1e-3, 1e3))
+    depth = scale * (0.5 + torch.rand(1, 1, H, W, generator=torch.Generator().manual_seed(seed), dtype=torch.float64))
+    return H, W, K, pose_matrix(R, t), depth
+
+
+@PROPERTY
+@given(cameras())
+def test_project_then_unproject_returns_to_the_target_pixel(cam):
+    """Target pixel -> source pixel (project_to_source) -> 3D point by kornia's unprojection -> back into the target."""
+    H, W, K, T, depth = cam
+    uv_src, z_src, in_front = project_to_source(depth, K, T)
+    # Only points well in front of the source camera are well conditioned (z_src -> 0 sends uv to infinity).
+    ok = in_front & (z_src > 1e-3 * depth[:, 0])
+    assume(bool(ok.any()))
+    pts_src = unproject_points(uv_src[ok], z_src[ok][:, None], K[0])  # (N,3) in the source camera
+    pts_tgt = pts_src @ T[0, :3, :3].T + T[0, :3, 3]
+    uv_tgt = project_points(pts_tgt, K[0])
+    vs, us = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    grid = torch.stack([us, vs], -1)[None].expand(1, H, W, 2)[ok]
+    torch.testing.assert_close(uv_tgt, grid, atol=1e-6 * max(1.0, float(K[0, 0, 0])), rtol=1e-6)
+    torch.testing.assert_close(pts_tgt[:, 2], depth[:, 0][ok], atol=0, rtol=1e-9)
+
+
+@PROPERTY
+@given(cameras())
+def test_identity_pose_is_identity_warp_for_any_camera(cam):
+    H, W, K, _, depth = cam
+    src = torch.rand(1, 2, H, W, dtype=torch.float64)
+    warped, valid = inverse_warp(src, depth, K, torch.eye(4, dtype=torch.float64)[None])
+    assert valid.min() == 1
+    torch.testing.assert_close(warped, src, atol=1e-9, rtol=0)
+
+
+@PROPERTY
+@given(st.lists(cameras(max_size=6), min_size=2, max_size=4), st.integers(1, 4))
+def test_batched_warp_equals_per_sample(cams, channels):
+    H, W = cams[0][0], cams[0][1]
+    cams = [c for c in cams if (c[0], c[1]) == (H, W)]
+    K = torch.cat([c[2] for c in cams]).float()
+    T = torch.cat([c[3] for c in cams]).float()
+    depth = torch.cat([c[4] for c in cams]).float()
+    src = torch.rand(len(cams), channels, H, W)
+    warped, valid = inverse_warp(src, depth, K, T)
+    for i in range(len(cams)):
+        w_i, v_i = inverse_warp(src[i:i + 1], depth[i:i + 1], K[i:i + 1], T[i:i + 1])
+        torch.testing.assert_close(warped[i:i + 1], w_i, atol=1e-6, rtol=0)
+        torch.testing.assert_close(valid[i:i + 1], v_i)
+
+
+@PROPERTY
+@given(cameras())
+def test_invert_pose_round_trip(cam):
+    _, _, _, T, _ = cam
+    eye = torch.eye(4, dtype=torch.float64)[None]
+    torch.testing.assert_close(invert_pose(T) @ T, eye, atol=1e-12, rtol=0)
+    torch.testing.assert_close(T @ invert_pose(T), eye, atol=1e-12, rtol=0)
+
+
+# -- finiteness under extreme inputs --------------------------------------------------------------------------------
+CASES = stress.geometry_cases()
+OUTSIDE_CONTRACT = {c.name for c in CASES if "outside the contract" in c.name}
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c.name for c in CASES])
+def test_warp_outputs_and_gradients_stay_finite(case):
+    c = stress.check_warp(case)
+    assert c.finite_out and c.finite_grad_src_depth and c.masked and c.expectation_met, c
+    if case.name not in OUTSIDE_CONTRACT:
+        assert c.finite_grad_K_T, c
+
+
+def test_geometry_cases_cover_the_issue_ranges():
+    names = " ".join(c.name for c in CASES)
+    for needle in ("180°", "translation x = 1e-06", "translation x = 1000", "depth 0.0001", "depth 10000",
+                   "focal 1 px", "focal 100000 px", "behind", "singular"):
+        assert needle in names, needle
+
+
+# -- float64 gradcheck ----------------------------------------------------------------------------------------------
+GRAD_CASES = stress.gradcheck_cases()
+# These compute in float32 even on float64 inputs (``.float()`` meant for bf16 also downcasts float64).
+CASTS_TO_FLOAT32 = {"DisparityDepth head (10, 0.01)", "ReconLoss (multi-scale L1)", "DepthConsistencyLoss",
+                    "EdgeSmoothLoss (target and source depth)", "WarpLoss (masked L1)",
+                    "BranchReconLoss (per-branch L1)", "VGGLoss (16x16, random projection)"}
+
+
+def test_gradcheck_covers_every_loss_term():
+    import nvs.losses as L
+
+    terms = {name for name, obj in vars(L).items()
+             if isinstance(obj, type) and issubclass(obj, LossTerm) and obj is not LossTerm}
+    covered = {c.name.split(" ")[0] for c in GRAD_CASES}
+    assert terms <= covered, terms - covered
+
+
+@pytest.mark.parametrize("case", GRAD_CASES, ids=[c.name for c in GRAD_CASES])
+def test_gradcheck_float64(case):
+    """Analytic gradients match finite differences (with float64 kept through ``.float()``)."""
+    with stress.float64_kept():
+        ok, why = stress.run_gradcheck(case)
+    assert ok, why
+
+
+@pytest.mark.parametrize("case", [pytest.param(c, marks=pytest.mark.xfail(
+    c.name in CASTS_TO_FLOAT32, strict=True, reason="`.float()` downcasts float64; fix proposed in issue 9"))
+    for c in GRAD_CASES], ids=[c.name for c in GRAD_CASES])
+def test_terms_compute_in_float64_as_is(case):
+    assert stress.float32_inside(case) == ""
+
+
+def test_float64_kept_restores_tensor_float():
+    x = torch.ones(2, dtype=torch.float64)
+    with stress.float64_kept():
+        assert x.float().dtype == torch.float64
+    assert x.float().dtype == torch.float32
+
+
+# -- precision ------------------------------------------------------------------------------------------------------
+def test_paper_model_forward_backward_under_bf16_autocast_is_finite(tmp_path):
+    from nvs.build import build_module
+
+    module = build_module(stress.compose(["model=nvs", "loss=[recon,depth_consistency,edge_smooth,warp]"],
+                                         str(tmp_path)))
+    batch = stress.stress_batch("objects")
+    rgb32, d32, _, ok32 = stress._forward_backward(module, batch, None)
+    rgb, d, _, ok = stress._forward_backward(module, batch, ("cpu", torch.bfloat16))
+    assert ok32 and ok
+    assert (rgb - rgb32).abs().mean() < 0.05 and ((d - d32).abs() / d32).mean() < 0.05
+
+
+@pytest.mark.xfail(strict=True, reason="project_to_source runs its matmuls in bf16 under autocast; fix proposed in "
+                                       "issue 9 (compute the projection in float32 with autocast disabled)")
+def test_projection_under_autocast_keeps_fp32_accuracy():
+    S = 256
+    depth = 2.0 + 0.3 * torch.rand(1, 1, S, S, generator=torch.Generator().manual_seed(0))
+    K = stress.intrinsics(480.0, S, 1)
+    T = stress.about_point(stress.rotation("y", 20), stress.CENTRE)[None]
+    uv, _, ok = project_to_source(depth, K, T)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        uv_ac, _, ok_ac = project_to_source(depth, K, T)
+    m = ok & ok_ac
+    assert float((uv_ac.float() - uv)[m].abs().max()) < 0.01  # pixels
+
+
+# -- the non-finite loss guard --------------------------------------------------------------------------------------
+class NaNFrom(LossTerm):
+    """0 x the mean prediction until call ``start``, NaN (connected to the graph) from then on."""
+
+    def __init__(self, start: int, stop: int = 10**9):
+        super().__init__(1.0)
+        self.start, self.stop, self.calls = start, stop, 0
+
+    def forward(self, out, batch):
+        self.calls += 1
+        bad = self.start <= self.calls <= self.stop
+        return out["rgb"].float().mean() * (float("nan") if bad else 0.0)
+
+
+def _guard_run(objects_root, tmp_path, monkeypatch, nonfinite: str, nan: NaNFrom):
+    cfg = compose_train([f"data.root={objects_root}", f"paths.root_dir={tmp_path}", f"nonfinite={nonfinite}",
+                         "trainer.max_steps=5", "trainer.val_check_interval=2", "data.loader.batch_size=2",
+                         "loss=[recon]", "test=false", "trainer.enable_progress_bar=false",
+                         # Checkpoints wait for the monitored val/l1, so validate (and save) often.
+                         "+callbacks.model_checkpoint.every_n_train_steps=1"])
+    cfg.paths.output_dir = str(tmp_path)
+    OmegaConf.resolve(cfg)
+    real = nvs.train.build_module
+
+    def with_nan(c):
+        module = real(c)
+        module.losses["nan"] = nan
+        return module
+
+    monkeypatch.setattr(nvs.train, "build_module", with_nan)
+    return nvs.train.run(cfg, tmp_path)
+
+
+def _finite_checkpoint(path) -> int:
+    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    assert all(torch.isfinite(v).all() for v in ckpt["state_dict"].values() if v.is_floating_point())
+    return int(ckpt["global_step"])
+
+
+def test_nonfinite_stop_names_the_step_and_keeps_the_last_good_checkpoint(objects_root, tmp_path, monkeypatch):
+    with pytest.raises(NonFiniteLossError, match=r"non-finite training loss at step 4 .*last good checkpoint"):
+        _guard_run(objects_root, tmp_path, monkeypatch, "stop", NaNFrom(start=5))
+    # Steps 0-3 finished and were checkpointed; the NaN step changed nothing.
+    assert _finite_checkpoint(tmp_path / "checkpoints" / "last.ckpt") == 4
+
+
+def test_nonfinite_skip_drops_the_bad_steps_and_finishes(objects_root, tmp_path, monkeypatch):
+    nan = NaNFrom(start=2, stop=3)
+    result = _guard_run(objects_root, tmp_path, monkeypatch, "skip", nan)
+    assert nan.calls >= 5 and result["steps"] == 5
+    assert _finite_checkpoint(tmp_path / "checkpoints" / "last.ckpt") == 5
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["steps"] == 5
+
+
+# -- the report -----------------------------------------------------------------------------------------------------
+def test_stress_report_has_provenance_and_tables(tmp_path):
+    out = tmp_path / "stress.md"
+    text = stress.main(["--sections", "geometry,gradcheck", "--out", str(out)])
+    assert out.read_text() == text
+    for needle in ("Command: `python -m nvs.stress --sections geometry,gradcheck", "Git SHA:", "Date:", "Device:",
+                   f"torch {torch.__version__}", "## 1. Geometry under extremes", "## 2. float64 gradcheck",
+                   "| identity pose | yes | yes | yes | yes | 1.000 |"):
+        assert needle in text, needle
+    assert not list(tmp_path.glob(".*.tmp"))
+
+
+def test_stress_rejects_unknown_sections(tmp_path):
+    with pytest.raises(SystemExit):
+        stress.main(["--sections", "nope", "--out", str(tmp_path / "x.md")])
+
+
+def test_training_under_stress_counts_nonfinite_steps():
+    """The stress trainer must notice a NaN: a module whose loss is NaN from the second step on."""
+    from nvs.models.reference import CopySource
+    from nvs.module import NVSModule
+
+    class Tiny(CopySource):
+        def __init__(self):
+            super().__init__()
+            self.w = torch.nn.Parameter(torch.ones(()))
+
+        def forward(self, batch, needs=frozenset()):
+            out = super().forward(batch, needs)
+            out["rgb"] = out["rgb"] * self.w
+            return out
+
+    module = NVSModule(Tiny(), {"nan": NaNFrom(start=2)}, optimizer=None)
+    batch = stress.stress_batch("objects", S=16)
+    run = stress.train_under_stress(module, lambda i: batch, steps=3)
+    # Anomaly detection stops the NaN backward of step 1 and names it; step 0 was clean.
+    assert run.losses == [0.0] and run.error.startswith("step 1:") and "nan" in run.error.lower()
