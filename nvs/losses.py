@@ -61,9 +61,11 @@ class VGGLoss(LossTerm):
 
     def forward(self, out: Outputs, batch: Batch) -> torch.Tensor:
         pred, tgt = out["rgb"], batch["tgt"]
-        n = pred.shape[0]
-        feats = self.vgg(torch.cat([pred, tgt.to(pred.dtype)]))
-        return sum((f[:n].float() - f[n:].float().detach()).abs().mean() for f in feats)
+        # Target features need no graph: batching them with the prediction would make backward run through both.
+        with torch.no_grad():
+            feats_tgt = self.vgg(tgt.to(pred.dtype))
+        feats_pred = self.vgg(pred)
+        return sum((fp.float() - ft.float()).abs().mean() for fp, ft in zip(feats_pred, feats_tgt))
 
 
 class DepthConsistencyLoss(LossTerm):
