@@ -74,6 +74,20 @@ def test_builds_from_experiment_and_runs_forward_backward(name, tmp_path):
         [n for n, g in grads.items() if g is None]
 
 
+@pytest.mark.parametrize("name", BASELINES)
+def test_scene_experiment_runs_on_a_scene_batch(name, tmp_path):
+    module = _module(name, tmp_path, data="drive")
+    batch = fixture_batch()
+    batch["pivot"] = torch.zeros(2, 3)  # scenes: the camera moves (forward and a little to the side)
+    batch["T_tgt_src"] = pose_matrix(torch.eye(3).expand(2, 3, 3), torch.tensor([[0.01, 0.0, -0.05]]).expand(2, 3))
+    loss = module.training_step(batch, 0)
+    loss.backward()
+    assert torch.isfinite(loss)
+    if name == "chen":  # the scenes' disparity head: depth within (1/(a+b), 1/b)
+        depth = module(batch)["depth"]
+        assert (depth > 1 / 10.01).all() and (depth < 100).all()
+
+
 def test_chen_outputs_depth_and_the_extras_of_the_full_model(tmp_path):
     module = _module("chen", tmp_path)
     out = module(fixture_batch(), frozenset({Extras.DEPTH_FROM_TGT, Extras.DEPTH_SRC, Extras.WARPED_SRC}))
