@@ -1,0 +1,328 @@
+"""Faults and bad input: a killed run resumes, results files are never half-written, wrong shapes, wrong override types
+and mismatched checkpoints stop with one clear message."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from nvs import atomic
+from nvs.build import build_module
+from nvs.config_check import check_cli_overrides, check_types, model_mismatch, split_overrides
+from nvs.errors import UserError
+from nvs.geometry import inverse_warp, pose_matrix, scale_intrinsics
+from nvs.run_files import write_metrics, write_per_image
+from tests.conftest import CONF_DIR, compose_train
+
+REPO = Path(__file__).resolve().parents[1]
+PENDING = "proposed in issue 9, not yet wired into the entry points"
+
+
+def _python(*args, cwd=REPO, timeout=600):
+    return subprocess.run([sys.executable, *args], cwd=cwd, capture_output=True, text=True, timeout=timeout)
+
+
+def _is_one_clear_error(res, *needles) -> bool:
+    return res.returncode == 2 and "Traceback" not in res.stderr and all(n in res.stderr for n in needles)
+
+
+# -- kill and resume ------------------------------------------------------------------------------------------------
+MAX_STEPS = 6
+
+
+def _train_cmd(objects_root, run_dir):
+    # Validation (and so last.ckpt, which waits for the monitored val/l1) every 2 steps.
+    return ["-m", "nvs.train", f"data.root={objects_root}", f"hydra.run.dir={run_dir}",
+            f"trainer.max_steps={MAX_STEPS}", "trainer.val_check_interval=2", "data.loader.batch_size=2",
+            "loss=[recon]", "optim.lr=1e-3", "trainer.enable_progress_bar=false"]
+
+
+@pytest.mark.slow
+def test_killed_run_resumes_and_matches_an_uninterrupted_one(objects_root, tmp_path):
+    killed = tmp_path / "killed"
+    proc = subprocess.Popen([sys.executable, *_train_cmd(objects_root, killed)], cwd=REPO,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    last = killed / "checkpoints" / "last.ckpt"
+    deadline = time.monotonic() + 300
+    while not last.is_file() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)  # mid-run, no chance to clean up
+    proc.wait()
+    assert last.is_file(), "the run ended before its first checkpoint"
+    step_at_kill = torch.load(last, map_location="cpu", weights_only=False)["global_step"]
+    assert 0 < step_at_kill < MAX_STEPS
+    assert not (killed / "metrics.json").exists()
+
+    resumed = _python(*_train_cmd(objects_root, killed))  # the same command again: ckpt_path=auto
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert f"Restored all states from the checkpoint at {last}" in resumed.stderr
+    full = _python(*_train_cmd(objects_root, tmp_path / "full"))
+    assert full.returncode == 0, full.stderr[-3000:]
+
+    a = json.loads((killed / "metrics.json").read_text())
+    b = json.loads((tmp_path / "full" / "metrics.json").read_text())
+    assert a["steps"] == b["steps"] == MAX_STEPS
+    # Samples are counted across the segments: the resumed process trained only the remaining steps.
+    assert a["train_samples_per_s"] * a["train_wall_s"] == pytest.approx(2 * MAX_STEPS)
+    # After resuming, the data order restarts (the loader is reseeded and partners are drawn afresh), so the weights
+    # differ a little from the uninterrupted run's: the metrics agree within that noise (about 3 % here), not bitwise.
+    for key in ("l1", "ssim_paper", "psnr"):
+        assert a["test"][key] == pytest.approx(b["test"][key], rel=0.1), key
+    assert a["test"]["n_pairs"] == b["test"]["n_pairs"] == 4
+
+
+@pytest.mark.xfail(strict=True, reason=f"a truncated last.ckpt is a traceback on resume; check {PENDING}")
+def test_resume_from_a_truncated_checkpoint_is_one_clear_error(objects_root, tmp_path):
+    """What a kill during a non-atomic checkpoint write leaves (run directory on another filesystem than $TMPDIR)."""
+    last = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    last.parent.mkdir(parents=True)
+    whole = tmp_path / "whole.ckpt"
+    torch.save({"state_dict": {"w": torch.zeros(10_000)}, "global_step": 2}, whole)
+    last.write_bytes(whole.read_bytes()[: whole.stat().st_size // 2])
+    res = _python(*_train_cmd(objects_root, tmp_path / "run"))
+    assert _is_one_clear_error(res, "last.ckpt"), res.stderr[-2000:]
+
+
+# -- atomic writes --------------------------------------------------------------------------------------------------
+def _leftovers(d: Path) -> list[str]:
+    return sorted(p.name for p in d.iterdir() if p.name.endswith(".tmp"))
+
+
+class _OsWith:
+    """The os module with some functions replaced, for nvs.atomic only (the real os stays untouched)."""
+
+    def __init__(self, **replaced):
+        self.replaced = replaced
+
+    def __getattr__(self, name):
+        return self.replaced.get(name) or getattr(os, name)
+
+
+def _failing(*args, **kwargs):
+    raise OSError("disk full")
+
+
+@pytest.mark.parametrize("fail_at", ["write", "fsync", "replace"])
+def test_failed_write_keeps_the_old_file_and_no_temp(tmp_path, monkeypatch, fail_at):
+    path = tmp_path / "metrics.json"
+    write_metrics(path, {"l1": 0.5})
+    old = path.read_bytes()
+
+    if fail_at == "write":
+        real_fdopen = os.fdopen
+
+        class HalfWriter:
+            """Writes half of the data, then the process is 'interrupted' (a BaseException, like Ctrl-C)."""
+
+            def __init__(self, fd, mode):
+                self.f = real_fdopen(fd, mode)
+
+            def __enter__(self):
+                return self
+
+            def __exit__(self, *exc):
+                self.f.close()
+
+            def write(self, data):
+                self.f.write(data[: len(data) // 2])
+                self.f.flush()
+                raise KeyboardInterrupt
+
+        monkeypatch.setattr(atomic, "os", _OsWith(fdopen=HalfWriter))
+        with pytest.raises(KeyboardInterrupt):
+            write_metrics(path, {"l1": 0.25, "big": list(range(10_000))})
+    else:
+        monkeypatch.setattr(atomic, "os", _OsWith(**{fail_at: _failing}))
+        with pytest.raises(OSError, match="disk full"):
+            write_metrics(path, {"l1": 0.25})
+    assert path.read_bytes() == old
+    assert _leftovers(tmp_path) == []
+
+
+def test_failed_csv_write_keeps_the_old_table(tmp_path, monkeypatch):
+    path = tmp_path / "test_per_image.csv"
+    write_per_image(path, [{"id_src": "a", "id_tgt": "b", "l1": 0.1}])
+    old = path.read_text()
+    monkeypatch.setattr(atomic, "os", _OsWith(replace=_failing))
+    with pytest.raises(OSError):
+        write_per_image(path, [{"id_src": "a", "id_tgt": "b", "l1": 0.2}] * 1000)
+    assert path.read_text() == old and _leftovers(tmp_path) == []
+
+
+WRITER = """
+import sys
+from nvs.run_files import write_metrics
+path, i = sys.argv[1], 0
+print("ready", flush=True)
+while True:
+    i += 1
+    write_metrics(path, {"i": i, "rows": [i] * 200_000})  # ~1.4 MB per write
+"""
+
+
+def test_sigkill_during_writes_never_leaves_a_truncated_file(tmp_path):
+    path = tmp_path / "metrics.json"
+    write_metrics(path, {"i": 0, "rows": [0] * 200_000})
+    for delay in (0.3, 0.55, 0.8):
+        proc = subprocess.Popen([sys.executable, "-c", WRITER, str(path)], cwd=REPO, stdout=subprocess.PIPE,
+                                text=True)
+        assert proc.stdout.readline().strip() == "ready"
+        time.sleep(delay)
+        proc.kill()
+        proc.wait()
+        proc.stdout.close()
+        data = json.loads(path.read_text())  # a whole file: the old or the new one, never a prefix
+        assert data["rows"] == [data["i"]] * 200_000
+        # A killed writer cannot remove its temp file, but it is hidden and never named like a results file.
+        assert [p.name for p in tmp_path.iterdir() if not p.name.startswith(".")] == ["metrics.json"]
+
+
+def test_stress_report_is_written_atomically(tmp_path, monkeypatch):
+    from nvs import stress
+
+    out = tmp_path / "stress.md"
+    out.write_text("old report\n")
+    monkeypatch.setattr(atomic, "os", _OsWith(replace=_failing))
+    with pytest.raises(OSError):
+        stress.main(["--sections", "geometry", "--out", str(out)])
+    assert out.read_text() == "old report\n" and _leftovers(tmp_path) == []
+
+
+# -- wrong shapes ---------------------------------------------------------------------------------------------------
+def _warp_args(B=2, S=4):
+    K = torch.tensor([[3.0, 0, 1.5], [0, 3.0, 1.5], [0, 0, 1]]).expand(B, 3, 3).clone()
+    return torch.rand(B, 3, S, S), torch.ones(B, 1, S, S), K, pose_matrix(torch.eye(3).expand(B, 3, 3),
+                                                                          torch.zeros(B, 3))
+
+
+@pytest.mark.parametrize("which, bad, match", [
+    ("K", lambda K: K[0], r"K must have shape \(2,3,3\), got \(3, 3\)"),
+    ("K", lambda K: K[:1], r"K must have shape \(2,3,3\), got \(1, 3, 3\)"),
+    ("K", lambda K: torch.eye(4).expand(2, 4, 4), r"K must have shape \(2,3,3\), got \(2, 4, 4\)"),
+    ("K", lambda K: K[..., :2], r"K must have shape \(2,3,3\), got \(2, 3, 2\)"),
+    ("T", lambda T: T[:, :3], r"T_tgt_src must have shape \(2,4,4\), got \(2, 3, 4\)"),
+    ("depth", lambda d: d[:, 0], r"depth_tgt must be \(B,1,H,W\)"),
+    ("depth", lambda d: d[..., :3], r"disagree in batch or size"),
+])
+def test_wrong_shapes_name_the_argument(which, bad, match):
+    src, depth, K, T = _warp_args()
+    args = {"src": src, "depth_tgt": depth, "K": K, "T_tgt_src": T}
+    key = {"K": "K", "T": "T_tgt_src", "depth": "depth_tgt"}[which]
+    args[key] = bad(args[key])
+    with pytest.raises(ValueError, match=match):
+        inverse_warp(**args)
+
+
+def test_scale_intrinsics_rejects_a_wrong_K():
+    with pytest.raises(ValueError, match=r"K must have shape \(...,3,3\), got \(4, 4\)"):
+        scale_intrinsics(torch.eye(4), 0.5)
+
+
+# -- wrong type in a CLI override -----------------------------------------------------------------------------------
+GROUPS = {"data", "model", "model/skips", "model/depth", "loss", "optim", "trainer", "callbacks", "logger", "paths",
+          "hydra", "experiment", "debug"}
+
+
+def _resolved(overrides, tmp_path):
+    cfg = compose_train([*overrides, f"paths.root_dir={tmp_path}"])
+    cfg.paths.output_dir = str(tmp_path)
+    OmegaConf.resolve(cfg)
+    return cfg
+
+
+@pytest.mark.parametrize("override, message", [
+    ("trainer.max_steps=abc", "config 'trainer.max_steps': expected a number (default 2000), got 'abc'"),
+    ("data.loader.batch_size=x", "config 'data.loader.batch_size': expected a number (default 8), got 'x'"),
+    ("test=yes", "config 'test': expected true or false (default True), got 'yes'"),
+    ("data.camera.fx=wide", "config 'data.camera.fx': expected a number (default 480.0), got 'wide'"),
+    ("loss.recon.scale_weights=[1,x]", "config 'loss.recon.scale_weights': item 1 ('x'): expected a number"),
+    ("model.n_points=[1]", "config 'model.n_points': expected a number (default 200), got [1]"),
+    ("data.camera=1", "config 'data.camera': expected a mapping"),
+])
+def test_wrong_override_type_names_the_key(override, message):
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        with pytest.raises(UserError) as err:
+            check_cli_overrides("train", [override])
+    assert message in str(err.value)
+
+
+@pytest.mark.parametrize("overrides", [
+    ["trainer.val_check_interval=0.5"],  # a number for a number: Lightning takes a fraction of an epoch
+    ["trainer.precision=16", "trainer.max_steps=null"],  # a scalar for a string; null for anything
+    ["experiment=sun_chairs", "model.fc_dim=128"],  # the experiment's own defaults count
+    ["model=chen", "model.n_points=100"],
+    ["+callbacks.model_checkpoint.every_n_train_steps=2", "~test", "hydra.run.dir=/x", "seed=1,2"],
+    ["data=drive", "data.depth_head.max_disparity=20"],
+])
+def test_well_typed_overrides_pass(overrides):
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        check_cli_overrides("train", overrides)
+
+
+def test_every_mismatch_is_listed_in_one_message(tmp_path):
+    cfg = _resolved([], tmp_path)
+    _, assignments = split_overrides(["trainer.max_steps=a", "data.size=b", "data=drive"], GROUPS)
+    with pytest.raises(UserError, match=r"'trainer.max_steps'.*; config 'data.size'"):
+        check_types(cfg, assignments)
+
+
+@pytest.mark.xfail(strict=True, reason=f"nvs.config_check.check_cli_overrides {PENDING}")
+@pytest.mark.parametrize("module, override", [("nvs.train", "trainer.max_steps=abc"),
+                                              ("nvs.train", "data.loader.batch_size=x"),
+                                              ("nvs.evaluate", "seed=abc")])
+def test_wrong_override_type_on_the_command_line(objects_root, tmp_path, module, override):
+    extra = ["model=copy_source", "data=chairs"] if module == "nvs.evaluate" else []
+    res = _python("-m", module, f"data.root={objects_root}", f"hydra.run.dir={tmp_path}", *extra, override)
+    assert _is_one_clear_error(res, f"config '{override.split('=')[0]}'"), res.stderr[-2000:]
+
+
+# -- a checkpoint from another model option -------------------------------------------------------------------------
+def _checkpoint(tmp_path, overrides) -> Path:
+    """A checkpoint as nvs.train leaves it (weights without loss networks, resolved run config), without training."""
+    module = build_module(_resolved(overrides, tmp_path))
+    state = {k: v for k, v in module.state_dict().items() if not k.startswith("losses.")}
+    path = tmp_path / "model.ckpt"
+    torch.save({"state_dict": state, "nvs_config": module.run_config, "global_step": 0}, path)
+    return path
+
+
+def test_model_mismatch_names_the_differing_key(tmp_path):
+    held = OmegaConf.to_container(_resolved(["model/skips=warped"], tmp_path).model)
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        def asked(*ov):
+            return OmegaConf.to_container(compose("evaluate", overrides=list(ov)).model, resolve=False)
+
+        assert model_mismatch(asked("model=nvs"), held) is None
+        assert model_mismatch(asked("model=nvs", "model/skips=none"), held) == (
+            "model.skips._target_: the checkpoint has 'nvs.models.skips.WarpedSkips', "
+            "the command asks for 'nvs.models.skips.NoSkips'")
+        assert model_mismatch(asked("model=nvs", "model/skips=wo_conv0"), held).startswith("model.skips.levels:")
+        assert model_mismatch(asked("model=nvs", "model.n_points=100"), held).startswith("model.n_points:")
+
+
+@pytest.mark.xfail(strict=True, reason=f"nvs.evaluate compares only the model name; model_mismatch {PENDING}")
+def test_checkpoint_of_another_skip_option_is_one_clear_error(objects_root, tmp_path):
+    ckpt = _checkpoint(tmp_path, ["model/skips=warped", "loss=[recon]"])
+    res = _python("-m", "nvs.evaluate", f"ckpt_path={ckpt}", "model=nvs", "model/skips=none", "data=chairs",
+                  f"data.root={objects_root}", f"out_dir={tmp_path / 'e'}", f"hydra.run.dir={tmp_path / 'h'}")
+    assert _is_one_clear_error(res, "model.skips", "WarpedSkips"), res.stderr[-2000:]
+
+
+@pytest.mark.xfail(strict=True, reason=f"weights of another shape are a RuntimeError traceback; check {PENDING}")
+def test_checkpoint_weights_of_another_shape_are_one_clear_error(objects_root, tmp_path):
+    """A checkpoint whose config names one skip option but whose weights come from another (edited, or stale code)."""
+    ckpt = _checkpoint(tmp_path, ["model/skips=plain", "loss=[recon]"])
+    data = torch.load(ckpt, weights_only=False)
+    data["nvs_config"]["model"]["skips"] = {"_target_": "nvs.models.skips.NoSkips"}
+    torch.save(data, ckpt)
+    res = _python("-m", "nvs.evaluate", f"ckpt_path={ckpt}", "data=chairs", f"data.root={objects_root}",
+                  f"out_dir={tmp_path / 'e'}", f"hydra.run.dir={tmp_path / 'h'}")
+    assert _is_one_clear_error(res, "model.ckpt", "pixel_decoder"), res.stderr[-2000:]
