@@ -11,6 +11,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from nvs.errors import UserError
 from nvs.models.net import Extras, to_model_range
 from nvs.types import Batch, Outputs
 
@@ -41,7 +42,8 @@ class ReconLoss(LossTerm):
         tgt = to_model_range(batch["tgt"])
         preds = out["rgb_scales"][::-1]  # finest first
         if len(self.scale_weights) > len(preds):
-            raise ValueError(f"{len(self.scale_weights)} scale weights but the model predicts {len(preds)} scales")
+            raise UserError(f"loss.recon.scale_weights has {len(self.scale_weights)} weights but the model predicts "
+                            f"{len(preds)} scale(s); use loss=[recon_final,...] or loss.recon.scale_weights=[1.0]")
         total = tgt.new_zeros(())
         for w, p in zip(self.scale_weights, preds):
             if p.shape[-2:] != tgt.shape[-2:]:

@@ -37,6 +37,27 @@ def test_every_group_option_composes(group, tmp_path):
         assert cfg.data.size % 16 == 0
 
 
+@pytest.mark.parametrize("model", [m for m in _options("model") if m not in ("copy_source", "gt_warp")])
+def test_bare_model_option_builds_with_its_own_losses(model, tmp_path):
+    """`python -m nvs.train model=<name>` works without naming an experiment: each model brings its loss list."""
+    cfg = compose_train([f"model={model}", f"paths.root_dir={tmp_path}"])
+    cfg.paths.output_dir = str(tmp_path)
+    OmegaConf.resolve(cfg)
+    module = build_module(cfg)
+    loss = module.training_step(fixture_batch(), 0)
+    assert torch.isfinite(loss)
+
+
+@pytest.mark.parametrize("size", [80, 96])
+def test_sizes_divisible_by_16_that_are_not_powers_of_two(size, tmp_path):
+    cfg = compose_train([f"data.size={size}", f"paths.root_dir={tmp_path}", "loss=[recon]"])
+    cfg.paths.output_dir = str(tmp_path)
+    OmegaConf.resolve(cfg)
+    out = build_module(cfg).net(fixture_batch(S=size))
+    assert out["rgb"].shape[-1] == size and [s.shape[-1] for s in out["rgb_scales"]] == [size // 8, size // 4,
+                                                                                          size // 2, size]
+
+
 @pytest.mark.parametrize("skips", ["warped", "plain", "none", "wo_conv0"])
 def test_model_options_forward_backward(skips, tmp_path):
     cfg = compose_train([f"model/skips={skips}", "loss=[recon,depth_consistency,edge_smooth,warp]",

@@ -48,7 +48,8 @@ class Trunk(nn.Module):
 
     def __init__(self, latent_dim: int, image_size: int, channels: int = 256, norm: str = "instance"):
         super().__init__()
-        n_up = (image_size // 16).bit_length() - 1  # 1x1 -> S/16
+        self.out_size = image_size // 16
+        n_up = self.out_size.bit_length() - 1  # 1x1 -> the largest power of two <= S/16
         self.fc = nn.Linear(latent_dim, channels)
         # Normalising a 1x1 (or 2x2) map per instance would erase it; those stages use batch norm or none.
         stage_norm = lambda i: norm if (norm != "instance" or 2 ** (i + 1) >= 4) else "none"  # noqa: E731
@@ -57,5 +58,7 @@ class Trunk(nn.Module):
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
         x = self.fc(z.flatten(1))[:, :, None, None]
-        x = F.leaky_relu(x, 0.2)
-        return self.ups(x)
+        x = self.ups(F.leaky_relu(x, 0.2))
+        if x.shape[-1] != self.out_size:  # sizes whose S/16 is not a power of two (80, 96, 144, ...)
+            x = F.interpolate(x, size=(self.out_size, self.out_size), mode="bilinear", align_corners=False)
+        return x

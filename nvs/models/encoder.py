@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import torch
 import torch.nn as nn
+import torch.nn.functional as F
 
 from nvs.models.blocks import conv3, down
 
@@ -27,7 +28,8 @@ class Encoder(nn.Module):
         self.conv2 = down(64, 128)
         self.conv3 = down(128, 256)
         self.conv4 = down(256, 256)
-        # Extra stride-2 stages down to 4x4 (conv5, conv6 at 256^2); the last has no norm/activation.
+        # Extra stride-2 stages towards 4x4 (conv5, conv6 at 256^2); the last has no norm/activation. Sizes whose
+        # S/16 is not a power of two end between 4 and 8 and are average-pooled to 4x4 before the fc.
         n_extra = (image_size // 64).bit_length() - 1
         self.extra = nn.Sequential(*[down(256, 256, norm="none" if i == n_extra - 1 else "instance",
                                           activation=i != n_extra - 1) for i in range(n_extra)])
@@ -38,5 +40,8 @@ class Encoder(nn.Module):
         c2 = self.conv2(self.conv1(c0))
         c3 = self.conv3(c2)
         c4 = self.conv4(c3)
-        z = self.fc(self.extra(c4).flatten(1)).view(-1, self.n_points, 3)
+        top = self.extra(c4)
+        if top.shape[-1] != 4:
+            top = F.adaptive_avg_pool2d(top, 4)
+        z = self.fc(top.flatten(1)).view(-1, self.n_points, 3)
         return z, {"conv0": c0, "conv2": c2, "conv3": c3, "conv4": c4}
