@@ -105,6 +105,14 @@ def test_warp_outputs_and_gradients_stay_finite(case):
         assert c.finite_grad_K_T, c
 
 
+@pytest.mark.xfail(strict=True, reason="a non-finite depth pixel makes the gradients w.r.t. K and the pose NaN; "
+                                       "fix proposed in issue 9 (treat it as no data, like 0)")
+@pytest.mark.parametrize("case", [c for c in CASES if c.name in OUTSIDE_CONTRACT],
+                         ids=[c.name for c in CASES if c.name in OUTSIDE_CONTRACT])
+def test_nonfinite_depth_is_no_data(case):
+    assert stress.check_warp(case).finite_grad_K_T
+
+
 def test_geometry_cases_cover_the_issue_ranges():
     names = " ".join(c.name for c in CASES)
     for needle in ("180°", "translation x = 1e-06", "translation x = 1000", "depth 0.0001", "depth 10000",
