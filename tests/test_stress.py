@@ -196,10 +196,9 @@ class NaNFrom(LossTerm):
 
 def _guard_run(objects_root, tmp_path, monkeypatch, nonfinite: str, nan: NaNFrom):
     cfg = compose_train([f"data.root={objects_root}", f"paths.root_dir={tmp_path}", f"nonfinite={nonfinite}",
-                         "trainer.max_steps=5", "trainer.val_check_interval=2", "data.loader.batch_size=2",
-                         "loss=[recon]", "test=false", "trainer.enable_progress_bar=false",
-                         # Checkpoints wait for the monitored val/l1, so validate (and save) often.
-                         "+callbacks.model_checkpoint.every_n_train_steps=1"])
+                         "trainer.max_steps=4", "trainer.val_check_interval=2", "data.loader.batch_size=2",
+                         # Checkpoints are written after each validation (they wait for the monitored val/l1).
+                         "loss=[recon]", "test=false", "trainer.enable_progress_bar=false"])
     cfg.paths.output_dir = str(tmp_path)
     OmegaConf.resolve(cfg)
     real = nvs.train.build_module
@@ -220,19 +219,20 @@ def _finite_checkpoint(path) -> int:
 
 
 def test_nonfinite_stop_names_the_step_and_keeps_the_last_good_checkpoint(objects_root, tmp_path, monkeypatch):
-    with pytest.raises(NonFiniteLossError, match=r"non-finite training loss at step 4 .*last good checkpoint"):
-        _guard_run(objects_root, tmp_path, monkeypatch, "stop", NaNFrom(start=5))
-    # Steps 0-3 finished and were checkpointed; the NaN step changed nothing.
-    assert _finite_checkpoint(tmp_path / "checkpoints" / "last.ckpt") == 4
+    with pytest.raises(NonFiniteLossError, match=r"non-finite training loss at step 3 .*last good checkpoint"):
+        _guard_run(objects_root, tmp_path, monkeypatch, "stop", NaNFrom(start=4))
+    # Steps 0-2 finished, the checkpoint after the validation at step 2 is there and clean; nothing came after.
+    assert _finite_checkpoint(tmp_path / "checkpoints" / "last.ckpt") == 2
+    assert not (tmp_path / "metrics.json").exists()
 
 
 def test_nonfinite_skip_drops_the_bad_steps_and_finishes(objects_root, tmp_path, monkeypatch):
     nan = NaNFrom(start=2, stop=3)
     result = _guard_run(objects_root, tmp_path, monkeypatch, "skip", nan)
-    assert nan.calls >= 5 and result["steps"] == 5
-    assert _finite_checkpoint(tmp_path / "checkpoints" / "last.ckpt") == 5
-    metrics = json.loads((tmp_path / "metrics.json").read_text())
-    assert metrics["steps"] == 5
+    assert nan.calls >= 4 and result["steps"] == 4
+    # Had the NaN steps been applied, every weight after them would be NaN.
+    assert _finite_checkpoint(tmp_path / "checkpoints" / "last.ckpt") == 4
+    assert json.loads((tmp_path / "metrics.json").read_text())["steps"] == 4
 
 
 # -- the report -----------------------------------------------------------------------------------------------------
