@@ -11,9 +11,11 @@ from pathlib import Path
 import hydra
 import lightning as L
 import torch
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from nvs.build import build_data, build_module, device_name, git_sha, parameter_count
+from nvs.config_check import check_cli_overrides, model_mismatch
 from nvs.errors import UserError, exits_cleanly
 from nvs.run_files import write_metrics, write_per_image
 
@@ -39,6 +41,11 @@ def run_config(cfg: DictConfig) -> tuple[DictConfig, dict | None]:
         run = OmegaConf.create(ckpt["nvs_config"])
         if cfg.get("model") is not None and cfg.model.get("name") != run.model.get("name"):
             raise UserError(f"{cfg.ckpt_path} holds model '{run.model.get('name')}', not '{cfg.model.get('name')}'")
+        if cfg.get("model") is not None:
+            diff = model_mismatch(OmegaConf.to_container(cfg.model, resolve=False),
+                                  OmegaConf.to_container(run.model, resolve=False))
+            if diff:
+                raise UserError(f"{cfg.ckpt_path} holds another option of model '{run.model.get('name')}': {diff}")
     elif cfg.get("model") is not None:
         run = OmegaConf.create({"model": OmegaConf.to_container(cfg.model), "loss": {}, "optim": None,
                                 "nonfinite": "stop", "channels_last": False, "trainer": {"precision": "32-true"}})
@@ -66,7 +73,11 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
     run.model.image_size = run.data.size
     module = build_module(run)
     if ckpt is not None:
-        missing, unexpected = module.load_state_dict(ckpt["state_dict"], strict=False)
+        try:
+            missing, unexpected = module.load_state_dict(ckpt["state_dict"], strict=False)
+        except RuntimeError as err:  # weights of another shape: name the first one
+            lines = [ln.strip() for ln in str(err).splitlines() if "size mismatch" in ln] or [str(err)]
+            raise UserError(f"{cfg.ckpt_path} does not fit model '{run.model.get('name')}': {lines[0]}") from None
         if missing or unexpected:
             raise UserError(f"{cfg.ckpt_path} does not fit model '{run.model.get('name')}': "
                             f"{len(missing)} missing and {len(unexpected)} unexpected weights "
@@ -99,6 +110,7 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
 @hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
 @exits_cleanly
 def main(cfg: DictConfig) -> None:
+    check_cli_overrides("evaluate", HydraConfig.get().overrides.task)
     out_dir = Path(cfg.out_dir)
     result = evaluate(cfg, out_dir)
     print("test: " + ", ".join(f"{k}={v:.4f}" for k, v in result["test"].items() if isinstance(v, float)))

@@ -16,6 +16,11 @@ from nvs.models.net import Extras, to_model_range
 from nvs.types import Batch, Outputs
 
 
+def up(x: torch.Tensor) -> torch.Tensor:
+    """bf16/fp16 -> float32 for the loss arithmetic; float32 and float64 stay as they are (float64 gradchecks)."""
+    return x.to(torch.promote_types(x.dtype, torch.float32))
+
+
 class LossTerm(nn.Module):
     needs: frozenset[str] = frozenset()
 
@@ -48,7 +53,7 @@ class ReconLoss(LossTerm):
         for w, p in zip(self.scale_weights, preds):
             if p.shape[-2:] != tgt.shape[-2:]:
                 p = F.interpolate(p, size=tgt.shape[-2:], mode="bilinear", align_corners=False)
-            total = total + w * (p.float() - tgt).abs().mean()
+            total = total + w * (up(p) - tgt).abs().mean()
         return total
 
 
@@ -67,7 +72,7 @@ class VGGLoss(LossTerm):
         with torch.no_grad():
             feats_tgt = self.vgg(tgt.to(pred.dtype))
         feats_pred = self.vgg(pred)
-        return sum((fp.float() - ft.float()).abs().mean() for fp, ft in zip(feats_pred, feats_tgt))
+        return sum((up(fp) - up(ft)).abs().mean() for fp, ft in zip(feats_pred, feats_tgt))
 
 
 class DepthConsistencyLoss(LossTerm):
@@ -79,7 +84,7 @@ class DepthConsistencyLoss(LossTerm):
         super().__init__(weight)
 
     def forward(self, out: Outputs, batch: Batch) -> torch.Tensor:
-        return (out[Extras.DEPTH_FROM_TGT].float() - out["depth"].float()).abs().mean()
+        return (up(out[Extras.DEPTH_FROM_TGT]) - up(out["depth"])).abs().mean()
 
 
 class EdgeSmoothLoss(LossTerm):
@@ -93,7 +98,7 @@ class EdgeSmoothLoss(LossTerm):
     @staticmethod
     def _term(depth: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
         # kornia's smoothness is written for inverse depth but is the same operator on any map.
-        return kornia.losses.inverse_depth_smoothness_loss(depth.float(), image.float())
+        return kornia.losses.inverse_depth_smoothness_loss(up(depth), up(image))
 
     def forward(self, out: Outputs, batch: Batch) -> torch.Tensor:
         loss = self._term(out["depth"], batch["tgt"])
@@ -111,6 +116,6 @@ class WarpLoss(LossTerm):
         super().__init__(weight)
 
     def forward(self, out: Outputs, batch: Batch) -> torch.Tensor:
-        valid = out["warp_valid"].float()
-        diff = (to_model_range(out[Extras.WARPED_SRC].float()) - to_model_range(batch["tgt"])).abs() * valid
+        valid = up(out["warp_valid"])
+        diff = (to_model_range(up(out[Extras.WARPED_SRC])) - to_model_range(batch["tgt"])).abs() * valid
         return diff.sum() / (valid.sum() * diff.shape[1]).clamp_min(1.0)

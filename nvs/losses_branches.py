@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from nvs.losses import LossTerm
+from nvs.losses import LossTerm, up
 from nvs.models.baselines import RGB_BRANCHES
 from nvs.models.net import to_model_range
 from nvs.types import Batch, Outputs
@@ -23,4 +23,4 @@ class BranchReconLoss(LossTerm):
         branches = out[RGB_BRANCHES]
         if not branches:
             raise ValueError("the model returned no branches to supervise")
-        return sum((to_model_range(img.float()) - tgt).abs().mean() for img in branches.values())
+        return sum((to_model_range(up(img)) - tgt).abs().mean() for img in branches.values())

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+import zipfile
 from pathlib import Path
 
 import hydra
@@ -13,6 +14,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from nvs.build import build_data, build_module, device_name, git_sha, parameter_count
+from nvs.config_check import check_cli_overrides
 from nvs.errors import UserError, exits_cleanly
 from nvs.run_files import write_metrics, write_per_image
 
@@ -48,10 +50,18 @@ def _resume_path(cfg: DictConfig, out_dir: Path) -> str | None:
         return None
     if cfg.ckpt_path == "auto":
         last = out_dir / "checkpoints" / "last.ckpt"
-        return str(last) if last.is_file() else None
+        return _complete(last) if last.is_file() else None
     if not Path(cfg.ckpt_path).is_file():
         raise UserError(f"ckpt_path={cfg.ckpt_path}: no such checkpoint")
-    return str(cfg.ckpt_path)
+    return _complete(Path(cfg.ckpt_path))
+
+
+def _complete(path: Path) -> str:
+    # torch.save writes a zip whose directory sits at the end: a write cut short by a kill has none.
+    if not zipfile.is_zipfile(path):
+        raise UserError(f"{path}: incomplete checkpoint (the run was probably killed while writing it); "
+                        "delete it to resume from scratch, or pass ckpt_path=<another checkpoint>")
+    return str(path)
 
 
 def run(cfg: DictConfig, out_dir: Path) -> dict:
@@ -100,6 +110,7 @@ def run(cfg: DictConfig, out_dir: Path) -> dict:
 @hydra.main(version_base="1.3", config_path="../conf", config_name="train")
 @exits_cleanly
 def main(cfg: DictConfig) -> None:
+    check_cli_overrides("train", HydraConfig.get().overrides.task)
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     OmegaConf.resolve(cfg)
     result = run(cfg, out_dir)

@@ -23,7 +23,6 @@ from nvs.run_files import write_metrics, write_per_image
 from tests.conftest import CONF_DIR, compose_train
 
 REPO = Path(__file__).resolve().parents[1]
-PENDING = "proposed in issue 9, not yet wired into the entry points"
 
 
 def _python(*args, cwd=REPO, timeout=600):
@@ -79,7 +78,6 @@ def test_killed_run_resumes_and_matches_an_uninterrupted_one(objects_root, tmp_p
     assert a["test"]["n_pairs"] == b["test"]["n_pairs"] == 4
 
 
-@pytest.mark.xfail(strict=True, reason=f"a truncated last.ckpt is a traceback on resume; check {PENDING}")
 def test_resume_from_a_truncated_checkpoint_is_one_clear_error(objects_root, tmp_path):
     """What a kill during a non-atomic checkpoint write leaves (run directory on another filesystem than $TMPDIR)."""
     last = tmp_path / "run" / "checkpoints" / "last.ckpt"
@@ -274,7 +272,6 @@ def test_every_mismatch_is_listed_in_one_message(tmp_path):
         check_types(cfg, assignments)
 
 
-@pytest.mark.xfail(strict=True, reason=f"nvs.config_check.check_cli_overrides {PENDING}")
 @pytest.mark.parametrize("module, override", [("nvs.train", "trainer.max_steps=abc"),
                                               ("nvs.train", "data.loader.batch_size=x"),
                                               ("nvs.evaluate", "seed=abc")])
@@ -308,7 +305,6 @@ def test_model_mismatch_names_the_differing_key(tmp_path):
         assert model_mismatch(asked("model=nvs", "model.n_points=100"), held).startswith("model.n_points:")
 
 
-@pytest.mark.xfail(strict=True, reason=f"nvs.evaluate compares only the model name; model_mismatch {PENDING}")
 def test_checkpoint_of_another_skip_option_is_one_clear_error(objects_root, tmp_path):
     ckpt = _checkpoint(tmp_path, ["model/skips=warped", "loss=[recon]"])
     res = _python("-m", "nvs.evaluate", f"ckpt_path={ckpt}", "model=nvs", "model/skips=none", "data=chairs",
@@ -316,7 +312,6 @@ def test_checkpoint_of_another_skip_option_is_one_clear_error(objects_root, tmp_
     assert _is_one_clear_error(res, "model.skips", "WarpedSkips"), res.stderr[-2000:]
 
 
-@pytest.mark.xfail(strict=True, reason=f"weights of another shape are a RuntimeError traceback; check {PENDING}")
 def test_checkpoint_weights_of_another_shape_are_one_clear_error(objects_root, tmp_path):
     """A checkpoint whose config names one skip option but whose weights come from another (edited, or stale code)."""
     ckpt = _checkpoint(tmp_path, ["model/skips=plain", "loss=[recon]"])

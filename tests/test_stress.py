@@ -105,8 +105,6 @@ def test_warp_outputs_and_gradients_stay_finite(case):
         assert c.finite_grad_K_T, c
 
 
-@pytest.mark.xfail(strict=True, reason="a non-finite depth pixel makes the gradients w.r.t. K and the pose NaN; "
-                                       "fix proposed in issue 9 (treat it as no data, like 0)")
 @pytest.mark.parametrize("case", [c for c in CASES if c.name in OUTSIDE_CONTRACT],
                          ids=[c.name for c in CASES if c.name in OUTSIDE_CONTRACT])
 def test_nonfinite_depth_is_no_data(case):
@@ -122,10 +120,6 @@ def test_geometry_cases_cover_the_issue_ranges():
 
 # -- float64 gradcheck ----------------------------------------------------------------------------------------------
 GRAD_CASES = stress.gradcheck_cases()
-# These compute in float32 even on float64 inputs (``.float()`` meant for bf16 also downcasts float64).
-CASTS_TO_FLOAT32 = {"DisparityDepth head (10, 0.01)", "ReconLoss (multi-scale L1)", "DepthConsistencyLoss",
-                    "EdgeSmoothLoss (target and source depth)", "WarpLoss (masked L1)",
-                    "BranchReconLoss (per-branch L1)", "VGGLoss (16x16, random projection)"}
 
 
 def test_gradcheck_covers_every_loss_term():
@@ -145,9 +139,7 @@ def test_gradcheck_float64(case):
     assert ok, why
 
 
-@pytest.mark.parametrize("case", [pytest.param(c, marks=pytest.mark.xfail(
-    c.name in CASTS_TO_FLOAT32, strict=True, reason="`.float()` downcasts float64; fix proposed in issue 9"))
-    for c in GRAD_CASES], ids=[c.name for c in GRAD_CASES])
+@pytest.mark.parametrize("case", GRAD_CASES, ids=[c.name for c in GRAD_CASES])
 def test_terms_compute_in_float64_as_is(case):
     assert stress.float32_inside(case) == ""
 
@@ -172,8 +164,6 @@ def test_paper_model_forward_backward_under_bf16_autocast_is_finite(tmp_path):
     assert (rgb - rgb32).abs().mean() < 0.05 and ((d - d32).abs() / d32).mean() < 0.05
 
 
-@pytest.mark.xfail(strict=True, reason="under autocast the projection's matmuls, the depth handed to WarpedSkips and "
-                                       "the sampling grid are bf16; fix proposed in issue 9 (float32 geometry)")
 def test_warp_under_autocast_samples_where_fp32_does():
     (row,) = stress.warp_position_rows(sizes=(256,))
     projection_max, skip_max = (float(cell.split(" / ")[0]) for cell in row[1:])

@@ -6,6 +6,11 @@ import torch
 import torch.nn as nn
 
 
+def _at_least_fp32(x: torch.Tensor) -> torch.Tensor:
+    # A bf16 depth of 2 is only good to 0.008, which moves warped pixels; float64 stays float64.
+    return x.to(torch.promote_types(x.dtype, torch.float32))
+
+
 class BoundedDepth(nn.Module):
     """depth = tanh(x) * (max-min)/2 + (max+min)/2 in (min, max); objects use (1, 3), i.e. tanh(x) + 2."""
 
@@ -17,7 +22,7 @@ class BoundedDepth(nn.Module):
         self.min_depth, self.max_depth = min_depth, max_depth
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return torch.tanh(x) * self.scale + self.bias
+        return torch.tanh(_at_least_fp32(x)) * self.scale + self.bias
 
 
 class DisparityDepth(nn.Module):
@@ -31,4 +36,4 @@ class DisparityDepth(nn.Module):
         self.min_depth, self.max_depth = 1.0 / (max_disparity + min_disparity), 1.0 / min_disparity
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return 1.0 / (self.a * torch.sigmoid(x.float()) + self.b).to(x.dtype)
+        return 1.0 / (self.a * torch.sigmoid(_at_least_fp32(x)) + self.b)

@@ -37,7 +37,7 @@ class WarpedSkips(nn.Module):
             s = SKIP_STRIDES[lv]
             d = downsample_depth(depth, tuple(f.shape[-2:]))
             Ks = scale_intrinsics(K, 1.0 / s) if s != 1 else K
-            out[lv], _ = inverse_warp(f, d.to(f.dtype), Ks, T_tgt_src)
+            out[lv], _ = inverse_warp(f, d, Ks, T_tgt_src)
         return out
 
 

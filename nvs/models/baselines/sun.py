@@ -94,7 +94,8 @@ class Sun(nn.Module):
         x = to_model_range(src)
         pose = pose_code(batch["T_tgt_src"], batch["pivot"])
         f = self.flow_net(x, pose)
-        grid = identity_grid(B, H, W, f) + f[:, :2].permute(0, 2, 3, 1)
+        # In bf16 the identity grid is off by up to 1/256 of the image: build it and add the flow in float32.
+        grid = identity_grid(B, H, W, src.float()) + f[:, :2].float().permute(0, 2, 3, 1)
         rgb_flow = F.grid_sample(src, grid.to(src.dtype), mode="bilinear", padding_mode="border", align_corners=True)
         g = self.pixel_net(x, pose)
         rgb_pixel = to_image_range(torch.tanh(g[:, :3]))
