@@ -37,13 +37,14 @@ class NVSNet(nn.Module):
     ``depth`` (B,1,S,S) and whichever ``Extras`` were requested.
     """
 
-    def __init__(self, image_size: int, skips: nn.Module, depth: Callable[..., nn.Module], n_points: int = 200):
+    def __init__(self, image_size: int, skips: nn.Module, depth: Callable[..., nn.Module], n_points: int = 200,
+                 decoder_norm: str = "batch"):
         super().__init__()
         self.image_size = image_size
         self.encoder = Encoder(image_size, n_points)
         self.depth = depth(image_size=image_size, n_points=n_points)
         self.skips = skips
-        self.pixel_decoder = PixelDecoder(image_size, n_points, skips.levels)
+        self.pixel_decoder = PixelDecoder(image_size, n_points, skips.levels, norm=decoder_norm)
 
     def forward(self, batch: Batch, needs: frozenset[str] = frozenset()) -> Outputs:
         src, K, T = batch["src"], batch["K"], batch["T_tgt_src"]

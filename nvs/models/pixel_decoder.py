@@ -16,16 +16,18 @@ class PixelDecoder(nn.Module):
     upsampled and fed forward into the next stage.
     """
 
-    def __init__(self, image_size: int, n_points: int, skip_levels=tuple(SKIP_CHANNELS)):
+    def __init__(self, image_size: int, n_points: int, skip_levels=tuple(SKIP_CHANNELS), norm: str = "batch"):
         super().__init__()
+        # Batch statistics, not per-image ones: instance norm would erase each image's colour levels before the
+        # RGB heads.
         c = {lv: (SKIP_CHANNELS[lv] if lv in skip_levels else 0) for lv in SKIP_CHANNELS}
         self.skip_levels = tuple(lv for lv in SKIP_CHANNELS if lv in skip_levels)
-        self.trunk = Trunk(n_points * 3, image_size, norm="instance")
-        self.s16 = conv3(256 + c["conv4"], 128)
-        self.s8 = conv3(128 + c["conv3"], 128)
-        self.s4 = conv3(128 + c["conv2"] + 3, 64)
-        self.s2 = conv3(64 + 3, 32)
-        self.s1 = conv3(32 + c["conv0"] + 3, 32)
+        self.trunk = Trunk(n_points * 3, image_size, norm=norm)
+        self.s16 = conv3(256 + c["conv4"], 128, norm=norm)
+        self.s8 = conv3(128 + c["conv3"], 128, norm=norm)
+        self.s4 = conv3(128 + c["conv2"] + 3, 64, norm=norm)
+        self.s2 = conv3(64 + 3, 32, norm=norm)
+        self.s1 = conv3(32 + c["conv0"] + 3, 32, norm=norm)
         self.rgb8 = nn.Conv2d(128, 3, 3, padding=1, padding_mode="reflect")
         self.rgb4 = nn.Conv2d(64, 3, 3, padding=1, padding_mode="reflect")
         self.rgb2 = nn.Conv2d(32, 3, 3, padding=1, padding_mode="reflect")
