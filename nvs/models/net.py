@@ -30,6 +30,20 @@ def to_image_range(x: torch.Tensor) -> torch.Tensor:
     return (x + 1.0) * 0.5
 
 
+def decode_depths(encoder: nn.Module, depth_source: nn.Module, z_s: torch.Tensor, z_t: torch.Tensor, batch: Batch,
+                  needs: frozenset[str]) -> Outputs:
+    """The target depth psi_d(z~_t) plus the depth extras the losses asked for, decoded in one batched call.
+
+    -> {"depth": (B,1,S,S), and Extras.DEPTH_FROM_TGT / Extras.DEPTH_SRC when in ``needs``}.
+    """
+    extras = [key for key in (Extras.DEPTH_FROM_TGT, Extras.DEPTH_SRC) if key in needs]
+    latents = [z_t]
+    for key in extras:
+        latents.append(encoder(to_model_range(batch["tgt"]))[0] if key == Extras.DEPTH_FROM_TGT else z_s)
+    depth, *rest = depth_source(latents)
+    return {"depth": depth, **dict(zip(extras, rest))}
+
+
 class NVSNet(nn.Module):
     """Depth-guided skip-connection network (Hou et al. 2021).
 
@@ -50,19 +64,8 @@ class NVSNet(nn.Module):
         src, K, T = batch["src"], batch["K"], batch["T_tgt_src"]
         z_s, feats = self.encoder(to_model_range(src))
         z_t = transform_latent(z_s, T, batch["pivot"])
-        latents = [z_t]
-        if Extras.DEPTH_FROM_TGT in needs:
-            latents.append(self.encoder(to_model_range(batch["tgt"]))[0])
-        if Extras.DEPTH_SRC in needs:
-            latents.append(z_s)
-        depths = self.depth(latents)
-        depth = depths[0]
-        out: Outputs = {"depth": depth}
-        rest = iter(depths[1:])
-        if Extras.DEPTH_FROM_TGT in needs:
-            out[Extras.DEPTH_FROM_TGT] = next(rest)
-        if Extras.DEPTH_SRC in needs:
-            out[Extras.DEPTH_SRC] = next(rest)
+        out: Outputs = decode_depths(self.encoder, self.depth, z_s, z_t, batch, needs)
+        depth = out["depth"]
         rgb_scales = self.pixel_decoder(z_t, self.skips(feats, depth, K, T))
         out["rgb_scales"] = rgb_scales
         out["rgb"] = to_image_range(rgb_scales[-1])

@@ -11,7 +11,7 @@ from nvs.geometry import BORDER_TOLERANCE, project_to_source, sample_at
 from nvs.models.baselines import BaselineOutputs, check_needs
 from nvs.models.encoder import Encoder
 from nvs.models.latent import transform_latent
-from nvs.models.net import Extras, to_model_range
+from nvs.models.net import Extras, decode_depths, to_model_range
 from nvs.types import Batch, Outputs
 
 
@@ -61,20 +61,9 @@ class Chen(nn.Module):
         check_needs("chen", needs, self.provides)
         src, K, T = batch["src"], batch["K"], batch["T_tgt_src"]
         z_s, _ = self.encoder(to_model_range(src))  # skip features are unused
-        latents = [transform_latent(z_s, T, batch["pivot"])]
-        if Extras.DEPTH_FROM_TGT in needs:
-            latents.append(self.encoder(to_model_range(batch["tgt"]))[0])
-        if Extras.DEPTH_SRC in needs:
-            latents.append(z_s)
-        depths = self.depth(latents)
-        depth = depths[0]
-        rgb, valid = warp_border(src, depth.to(src.dtype), K, T)
-        out = BaselineOutputs("chen", rgb=rgb, rgb_scales=[to_model_range(rgb)], depth=depth)
-        rest = iter(depths[1:])
-        if Extras.DEPTH_FROM_TGT in needs:
-            out[Extras.DEPTH_FROM_TGT] = next(rest)
-        if Extras.DEPTH_SRC in needs:
-            out[Extras.DEPTH_SRC] = next(rest)
+        depths = decode_depths(self.encoder, self.depth, z_s, transform_latent(z_s, T, batch["pivot"]), batch, needs)
+        rgb, valid = warp_border(src, depths["depth"].to(src.dtype), K, T)
+        out = BaselineOutputs("chen", rgb=rgb, rgb_scales=[to_model_range(rgb)], **depths)
         if Extras.WARPED_SRC in needs:
             out[Extras.WARPED_SRC], out["warp_valid"] = rgb, valid
         return out
