@@ -17,7 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 from nvs.build import build_data, build_module, device_name, git_sha, parameter_count
 from nvs.config_check import check_cli_overrides, model_mismatch
 from nvs.errors import UserError, exits_cleanly
-from nvs.run_files import write_metrics, write_per_image
+from nvs.run_files import summary_line, write_metrics, write_per_image
 
 
 def load_checkpoint(path: str) -> dict:
@@ -113,7 +113,7 @@ def main(cfg: DictConfig) -> None:
     check_cli_overrides("evaluate", HydraConfig.get().overrides.task)
     out_dir = Path(cfg.out_dir)
     result = evaluate(cfg, out_dir)
-    print("test: " + ", ".join(f"{k}={v:.4f}" for k, v in result["test"].items() if isinstance(v, float)))
+    print(summary_line(result["test"]))
     print(f"wrote {out_dir / 'metrics.json'} and {out_dir / 'test_per_image.csv'}")
 
 

@@ -18,3 +18,8 @@ def write_per_image(path: str | Path, rows: list[dict]) -> None:
 
 def write_metrics(path: str | Path, payload: dict) -> None:
     write_json(path, payload)
+
+
+def summary_line(test: dict) -> str:
+    """One printed line of the mean test metrics."""
+    return "test: " + ", ".join(f"{k}={v:.4f}" for k, v in test.items() if isinstance(v, float))

@@ -16,7 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 from nvs.build import build_data, build_module, device_name, git_sha, parameter_count
 from nvs.config_check import check_cli_overrides
 from nvs.errors import UserError, exits_cleanly
-from nvs.run_files import write_metrics, write_per_image
+from nvs.run_files import summary_line, write_metrics, write_per_image
 
 
 class _Throughput(L.Callback):
@@ -116,7 +116,7 @@ def main(cfg: DictConfig) -> None:
     result = run(cfg, out_dir)
     test = result.get("test", {})
     if test:
-        print("test: " + ", ".join(f"{k}={v:.4f}" for k, v in test.items() if isinstance(v, float)))
+        print(summary_line(test))
     print(f"run directory: {out_dir}")
 
 

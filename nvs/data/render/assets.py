@@ -5,7 +5,6 @@ Every source loads into `Part`s in one canonical model frame: y up, the model's 
 
 from __future__ import annotations
 
-import io
 import re
 import tempfile
 import zipfile
