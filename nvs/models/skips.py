@@ -20,14 +20,18 @@ def _check_levels(levels) -> tuple[str, ...]:
     return levels
 
 
-class WarpedSkips(nn.Module):
-    """Warp each level's features into the target view with the depth downsampled to it and K scaled to it."""
-
-    needs_depth = True
+class _LevelSkips(nn.Module):
+    """Skips that pass a chosen list of encoder levels."""
 
     def __init__(self, levels=("conv0", "conv2", "conv3", "conv4")):
         super().__init__()
         self.levels = _check_levels(levels)
+
+
+class WarpedSkips(_LevelSkips):
+    """Warp each level's features into the target view with the depth downsampled to it and K scaled to it."""
+
+    needs_depth = True
 
     def forward(self, feats: dict[str, torch.Tensor], depth: torch.Tensor, K: torch.Tensor,
                 T_tgt_src: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -41,14 +45,10 @@ class WarpedSkips(nn.Module):
         return out
 
 
-class PlainSkips(nn.Module):
+class PlainSkips(_LevelSkips):
     """Unwarped source features, as a U-Net would pass them."""
 
     needs_depth = False
-
-    def __init__(self, levels=("conv0", "conv2", "conv3", "conv4")):
-        super().__init__()
-        self.levels = _check_levels(levels)
 
     def forward(self, feats, depth, K, T_tgt_src):
         return {lv: feats[lv] for lv in self.levels}
