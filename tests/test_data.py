@@ -122,3 +122,53 @@ def test_missing_corrupt_and_wrong_mode_images(tmp_path):
 def test_resize_and_depth_downsampling(objects_root):
     img, depth = ObjectsFormat(objects_root, "chair").read("m0_0_0", 32, True)
     assert img.shape == (3, 32, 32) and img.dtype == torch.uint8 and depth.shape == (1, 32, 32)
+
+
+def test_mirrored_pair_warps_to_the_mirrored_warp():
+    """Warping a mirrored pair equals mirroring the warped pair: K, pose and pivot are mirrored consistently."""
+    from nvs.data.datamodule import mirror_pair
+    from nvs.geometry import inverse_warp
+
+    g = torch.Generator().manual_seed(0)
+    H = W = 32
+    K = torch.tensor([[40.0, 0.0, 13.7], [0.0, 40.0, 16.2], [0.0, 0.0, 1.0]])
+    a, b = 0.1, -0.05
+    Ry = torch.tensor([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]], dtype=torch.float32)
+    Rx = torch.tensor([[1, 0, 0], [0, np.cos(b), -np.sin(b)], [0, np.sin(b), np.cos(b)]], dtype=torch.float32)
+    T = torch.eye(4)
+    T[:3, :3], T[:3, 3] = Ry @ Rx, torch.tensor([0.1, -0.05, 0.1])
+    item = {"src": torch.rand(3, H, W, generator=g), "tgt": torch.rand(3, H, W, generator=g),
+            "depth_src": 2 + torch.rand(1, H, W, generator=g), "depth_tgt": 2 + torch.rand(1, H, W, generator=g),
+            "K": K, "T_tgt_src": T, "pivot": torch.tensor([0.5, 0.0, 2.0])}
+    m = mirror_pair(item)
+    warped, valid = inverse_warp(item["src"][None], item["depth_tgt"][None], K[None], T[None])
+    warped_m, valid_m = inverse_warp(m["src"][None], m["depth_tgt"][None], m["K"][None], m["T_tgt_src"][None])
+    assert valid.sum() > 0.5 * H * W
+    torch.testing.assert_close(valid_m, valid.flip(-1))
+    torch.testing.assert_close(warped_m * valid_m, (warped * valid).flip(-1), atol=1e-4, rtol=0)
+    assert m["pivot"].tolist() == [-0.5, 0.0, 2.0]
+    assert mirror_pair(m)["T_tgt_src"].allclose(T) and mirror_pair(m)["K"].allclose(K)
+
+
+def test_augmentation_treats_both_views_alike_and_only_in_training(objects_root):
+    from nvs.data.datamodule import PairDataset, ViewCache
+
+    fmt = ObjectsFormat(objects_root, "chair")
+    cache = ViewCache(fmt, 64, True, True)
+    fid = "m0_0_0"
+    ds = PairDataset(cache, CAM_OBJ, pairs=[(fid, fid)] * 40, augment={"mirror": True, "permute_rgb": True})
+    plain = PairDataset(cache, CAM_OBJ, pairs=[(fid, fid)])[0]["src"]
+    torch.manual_seed(0)
+    changed = 0
+    for i in range(len(ds)):
+        item = ds[i]
+        assert torch.equal(item["src"], item["tgt"]) and torch.equal(item["depth_src"], item["depth_tgt"])
+        changed += not torch.equal(item["src"], plain)
+    assert 20 < changed < 40  # identity permutation and no flip together: 1 in 12
+    dm = _dm(fmt, CAM_OBJ, augment={"mirror": True})
+    assert dm.dataset("train").augment and not dm.dataset("test").augment
+
+
+def test_unknown_augmentation_key_is_named():
+    with pytest.raises(Exception, match="data.loader.augment.*'flip'"):
+        LoaderSettings(augment={"flip": True})

@@ -56,12 +56,39 @@ class ViewCache:
         return hit
 
 
-class PairDataset(Dataset):
-    """(src, tgt) pairs -> batch items. ``pairs`` is a fixed list, or ``sources`` + ``partner`` draw a target per item."""
+_MIRROR = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0]))
 
-    def __init__(self, cache: ViewCache, camera: Camera, pairs=None, sources=None, partner=None):
+
+def mirror_pair(item: dict) -> dict:
+    """The same pair seen in a mirror (x -> -x): images and depths flipped left-right, K, pose and pivot to match.
+
+    With M = diag(-1,1,1) the mirrored cameras see M·X, so T' = M T M, pivot' = M pivot and cx' = W-1-cx (pixel
+    centres at integer coordinates): inverse-warping the mirrored pair equals mirroring the warped pair.
+    """
+    out = dict(item)
+    for key in ("src", "tgt", "depth_src", "depth_tgt"):
+        if key in item:
+            out[key] = item[key].flip(-1)
+    K = item["K"].clone()
+    K[0, 2] = item["src"].shape[-1] - 1 - K[0, 2]
+    out["K"] = K
+    out["T_tgt_src"] = _MIRROR @ item["T_tgt_src"] @ _MIRROR
+    out["pivot"] = item["pivot"] * _MIRROR[:3, :3].diagonal()
+    return out
+
+
+class PairDataset(Dataset):
+    """(src, tgt) pairs -> batch items. ``pairs`` is a fixed list, or ``sources`` + ``partner`` draw a target per item.
+
+    ``augment`` (training only): ``mirror`` flips half the pairs left-right with the geometry to match
+    (:func:`mirror_pair`); ``permute_rgb`` applies one random permutation of the colour channels to both views.
+    """
+
+    def __init__(self, cache: ViewCache, camera: Camera, pairs=None, sources=None, partner=None,
+                 augment: dict | None = None):
         self.cache, self.camera = cache, camera
         self.pairs, self.sources, self.partner = pairs, sources, partner
+        self.augment = augment or {}
         self.K = camera.K(cache.size)
         self.pivot = torch.tensor(camera.pivot, dtype=torch.float32)
 
@@ -88,6 +115,11 @@ class PairDataset(Dataset):
         }
         if d_src is not None:
             item["depth_src"], item["depth_tgt"] = d_src, d_tgt
+        if self.augment.get("mirror") and bool(torch.randint(0, 2, ())):
+            item = mirror_pair(item)
+        if self.augment.get("permute_rgb"):
+            order = torch.randperm(3)
+            item["src"], item["tgt"] = item["src"][order], item["tgt"][order]
         return item
 
 
@@ -101,6 +133,13 @@ class LoaderSettings:
     cache: bool = True
     with_depth: bool = True  # load ground-truth depth when the dataset has it
     limit_test_pairs: int | None = None
+    # training-pair augmentation: {mirror: bool, permute_rgb: bool} (see PairDataset)
+    augment: dict | None = None
+
+    def __post_init__(self):
+        unknown = set(self.augment or {}) - {"mirror", "permute_rgb"}
+        if unknown:
+            raise UserError(f"data.loader.augment: unknown key(s) {sorted(unknown)}; expected mirror, permute_rgb")
 
 
 class NVSDataModule(L.LightningDataModule):
@@ -136,13 +175,13 @@ class NVSDataModule(L.LightningDataModule):
                     sources = [v for m in models for v in self.fmt.views(m)]
                     d = self.max_delta_azimuth
                     return PairDataset(cache, self.camera, sources=sources,
-                                       partner=lambda s, rng: random_partner(s, d, rng))
+                                       partner=lambda s, rng: random_partner(s, d, rng), augment=lo.augment)
                 pairs = object_pairs(models, self.fmt, lo.val_pairs_per_model, self.max_delta_azimuth, self.seed)
         else:
             pairs = self.fmt.pairs(split, lo.val_fraction, self.seed)
         if split == "test" and lo.limit_test_pairs:
             pairs = pairs[: lo.limit_test_pairs]
-        return PairDataset(cache, self.camera, pairs=pairs)
+        return PairDataset(cache, self.camera, pairs=pairs, augment=lo.augment if split == "train" else None)
 
     def _loader(self, split: str, shuffle: bool, batch_size: int) -> DataLoader:
         g = torch.Generator().manual_seed(self.seed)
