@@ -17,6 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 from nvs.build import build_data, build_module, device_name, git_sha, parameter_count
 from nvs.config_check import check_cli_overrides, model_mismatch
 from nvs.errors import UserError, exits_cleanly
+from nvs.module import NVSModule
 from nvs.run_files import summary_line, write_metrics, write_per_image
 
 
@@ -31,6 +32,19 @@ def load_checkpoint(path: str) -> dict:
     if not isinstance(ckpt, dict) or "state_dict" not in ckpt or not ckpt.get("nvs_config"):
         raise UserError(f"{path}: not an nvs checkpoint (no state_dict / nvs_config)")
     return ckpt
+
+
+def load_weights(module: NVSModule, ckpt: dict, path: str) -> None:
+    """Load a checkpoint's weights into a module built from its config; any mismatch is one clear error."""
+    name = module.model_name
+    try:
+        missing, unexpected = module.load_state_dict(ckpt["state_dict"], strict=False)
+    except RuntimeError as err:  # weights of another shape: name the first one
+        lines = [ln.strip() for ln in str(err).splitlines() if "size mismatch" in ln] or [str(err)]
+        raise UserError(f"{path} does not fit model '{name}': {lines[0]}") from None
+    if missing or unexpected:
+        raise UserError(f"{path} does not fit model '{name}': {len(missing)} missing and {len(unexpected)} "
+                        f"unexpected weights (e.g. {(missing or unexpected)[0]})")
 
 
 def run_config(cfg: DictConfig) -> tuple[DictConfig, dict | None]:
@@ -60,7 +74,7 @@ def run_config(cfg: DictConfig) -> tuple[DictConfig, dict | None]:
         raise UserError("give data=<chairs|cars|drive|...> for a model without a checkpoint")
     run.seed = int(cfg.seed)
     run.paths = OmegaConf.to_container(cfg.paths, resolve=True)
-    if cfg.limit:
+    if cfg.get("limit"):
         run.data.loader.limit_test_pairs = int(cfg.limit)
     OmegaConf.resolve(run)
     return run, ckpt
@@ -73,15 +87,7 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
     run.model.image_size = run.data.size
     module = build_module(run)
     if ckpt is not None:
-        try:
-            missing, unexpected = module.load_state_dict(ckpt["state_dict"], strict=False)
-        except RuntimeError as err:  # weights of another shape: name the first one
-            lines = [ln.strip() for ln in str(err).splitlines() if "size mismatch" in ln] or [str(err)]
-            raise UserError(f"{cfg.ckpt_path} does not fit model '{run.model.get('name')}': {lines[0]}") from None
-        if missing or unexpected:
-            raise UserError(f"{cfg.ckpt_path} does not fit model '{run.model.get('name')}': "
-                            f"{len(missing)} missing and {len(unexpected)} unexpected weights "
-                            f"(e.g. {(missing or unexpected)[0]})")
+        load_weights(module, ckpt, cfg.ckpt_path)
     precision = cfg.precision or run.trainer.get("precision", "32-true")
     trainer = L.Trainer(accelerator="auto", devices=1, precision=precision, logger=False,
                         enable_progress_bar=False, enable_model_summary=False)

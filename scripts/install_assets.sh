@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Install the Debian packages the renderer reads (nvs.data.render): real 3-D models and TORCS tracks,
-# assimp (AC3D -> OBJ for TORCS cars) and Mesa's software EGL/OSMesa. Idempotent: exits at once when all are present.
+# assimp (AC3D -> OBJ for TORCS cars) and Mesa's software EGL/OSMesa; and the browser the viewer's test drives.
+# Idempotent: exits at once when all are present.
 set -euo pipefail
 export DEBIAN_FRONTEND=noninteractive
 
@@ -10,6 +11,7 @@ PACKAGES=(
   trigger-rally-data      # rally cars (textured OBJ), GPL-2 / CC
   assimp-utils            # `assimp export car.acc car.obj`
   libegl1 libegl-mesa0 libgl1-mesa-dri libgles2 libosmesa6   # headless software rendering (llvmpipe)
+  chromium                # headless browser for the viewer's test (Playwright launches /usr/bin/chromium)
 )
 
 missing=()

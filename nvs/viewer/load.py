@@ -1,0 +1,157 @@
+"""python -m nvs.viewer.load ckpt_path=... [load.requests=100]: views per second through the viewer's HTTP endpoint.
+
+Starts the viewer (``python -m nvs.viewer`` with the same overrides, any free port) as its own process and, from
+this one, requests views over loopback one at a time, as a drag does: a bounded number of requests on one source
+with the pose sweeping the trained range, after warm-up requests. Each latency is the whole round trip (request,
+pose step, PNG encoding, JSON, reading the body). Reports the median (views/s = 1000 / median ms), p10/p90, the
+server's own model and server times, and the latency of a source switch (encoder + pose step); writes a JSON report
+(command, git SHA, date, device, load average before and after) to ``load.out`` (default
+``results/viewer/load_<size>.json``).
+"""
+
+from __future__ import annotations
+
+import collections
+import http.client
+import json
+import os
+import re
+import statistics
+import subprocess
+import sys
+import threading
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+from urllib.parse import urlencode, urlsplit
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig
+
+from nvs.atomic import write_json
+from nvs.build import device_name, git_sha
+from nvs.errors import UserError, exits_cleanly
+
+_URL = re.compile(r"viewer: (http://\S+)")
+
+
+class ViewerProcess:
+    """``python -m nvs.viewer *args port=0`` in a child process; the context value is its URL (``http://host:port/``).
+
+    Output after the URL line is drained into ``tail`` (the last lines) so the child never blocks on a full pipe.
+    """
+
+    def __init__(self, args: list[str], timeout_s: float = 180.0, cwd: str | Path | None = None):
+        self.args, self.timeout_s, self.cwd = list(args), timeout_s, cwd
+        self.tail: collections.deque[str] = collections.deque(maxlen=50)
+        self.proc: subprocess.Popen | None = None
+
+    def __enter__(self) -> str:
+        cmd = [sys.executable, "-m", "nvs.viewer", *self.args, "port=0"]
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=self.cwd)
+        found: list[str] = []
+        ready = threading.Event()
+
+        def drain():
+            for line in self.proc.stdout:
+                self.tail.append(line.rstrip())
+                m = _URL.search(line)
+                if m and not found:
+                    found.append(m.group(1))
+                    ready.set()
+            ready.set()  # the child exited
+
+        threading.Thread(target=drain, daemon=True).start()
+        ready.wait(self.timeout_s)
+        if not found:
+            self.__exit__(None, None, None)
+            raise UserError("the viewer did not start:\n" + "\n".join(self.tail))
+        return found[0]
+
+    def __exit__(self, *exc) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+def _triangle(i: int, period: int) -> float:
+    """0 -> 1 -> 0 over ``period`` steps."""
+    x = (i % period) / period
+    return 2 * x if x < 0.5 else 2 - 2 * x
+
+
+def _get(conn: http.client.HTTPConnection, path: str) -> tuple[dict, float]:
+    t0 = time.perf_counter()
+    conn.request("GET", path)
+    response = conn.getresponse()
+    body = response.read()
+    ms = 1000 * (time.perf_counter() - t0)
+    data = json.loads(body)
+    if response.status != 200:
+        raise UserError(f"GET {path}: {response.status} {data.get('error')}")
+    return data, ms
+
+
+def measure(url: str, requests: int, warmup: int) -> dict:
+    """Sequential view requests against a running viewer; latencies in ms (medians and spreads)."""
+    if requests < 1 or warmup < 0:
+        raise UserError(f"load.requests={requests}, load.warmup={warmup}: need at least one request")
+    parts = urlsplit(url)
+    conn = http.client.HTTPConnection(parts.hostname, parts.port, timeout=120)  # one keep-alive connection
+    info, _ = _get(conn, "/api/info")
+    axes = info["controls"]["axes"]
+    keys = [s["key"] for s in info["gallery"]]
+
+    def path(key: str, i: int) -> str:
+        # axes[0] sweeps its range back and forth (as a horizontal drag); axes[1] moves more slowly.
+        values = {ax["name"]: ax["min"] + (ax["max"] - ax["min"]) * _triangle(i, period)
+                  for ax, period in zip(axes, (20, 46))}
+        return "/api/view?" + urlencode({"source": key, **values})
+
+    for i in range(warmup):
+        _get(conn, path(keys[0], i))
+    switch = [_get(conn, path(k, 0)) for k in keys[1:6]]  # first views of new sources: encoder + pose step
+    views = [_get(conn, path(keys[0], i)) for i in range(requests)]
+    conn.close()
+    lat = sorted(ms for _, ms in views)
+    median = statistics.median(lat)
+    return {
+        "image_size": info["image_size"], "model": info["model"], "precision": info["precision"],
+        "requests": requests, "warmup": warmup,
+        "median_ms": median, "p10_ms": lat[int(0.1 * (len(lat) - 1))], "p90_ms": lat[int(0.9 * (len(lat) - 1))],
+        "views_per_s": 1000.0 / median,
+        "model_median_ms": statistics.median(v["model_ms"] for v, _ in views),
+        "server_median_ms": statistics.median(v["server_ms"] for v, _ in views),
+        "encoder_reruns": sum(bool(v["encoded"]) for v, _ in views),
+        "switch_median_ms": statistics.median(ms for _, ms in switch) if switch else None,
+    }
+
+
+@hydra.main(version_base="1.3", config_path="../../conf", config_name="viewer")
+@exits_cleanly
+def main(cfg: DictConfig) -> None:
+    overrides = [o for o in HydraConfig.get().overrides.task if not o.startswith(("load.", "port="))]
+    load_before = os.getloadavg()
+    with ViewerProcess(overrides) as url:
+        result = measure(url, int(cfg.load.requests), int(cfg.load.warmup))
+    report = {
+        "command": "python -m nvs.viewer.load " + " ".join(HydraConfig.get().overrides.task),
+        "git_sha": git_sha(), "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "device": device_name(), "threads": cfg.threads,
+        "loadavg_1min_before": load_before[0], "loadavg_1min_after": os.getloadavg()[0], **result,
+    }
+    out = Path(cfg.load.out or f"results/viewer/load_{result['image_size']}.json")
+    write_json(out, report)
+    print(f"{result['image_size']}²: {result['views_per_s']:.1f} views/s (median {result['median_ms']:.1f} ms end to "
+          f"end, p10 {result['p10_ms']:.1f}, p90 {result['p90_ms']:.1f}; model {result['model_median_ms']:.1f} ms; "
+          f"source switch {result['switch_median_ms'] or float('nan'):.1f} ms) over {result['requests']} requests")
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,178 @@
+"""The viewer's web server (aiohttp): the page, a small JSON API, and a start-up that listens on loopback only.
+
+GET  /                  the page (static/index.html; static/viewer.js, static/viewer.css under /static)
+GET  /api/info          model, controls (axes and trained ranges) and the gallery (PNG data URLs)
+GET  /api/view?source=<key>&<axis>=<value>...   one view: {rgb, depth (PNG data URLs), depth_range, model_ms, ...}
+POST /api/upload        multipart form field 'image' -> a new source {key, label, image, initial}
+Errors are JSON {"error": message} with status 400 (bad input), 413 (file too large) or 500; the server keeps running.
+Model work runs on one worker thread, so the event loop stays free and views are computed one at a time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import errno
+import ipaddress
+import logging
+import socket
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import torch
+from aiohttp import web
+
+from nvs.errors import UserError
+from nvs.viewer.controls import describe
+from nvs.viewer.images import png_data_url, to_uint8
+from nvs.viewer.session import Source, ViewSession
+
+STATIC = Path(__file__).with_name("static")
+MAX_UPLOAD_MB = 20
+log = logging.getLogger(__name__)
+
+SESSION = web.AppKey("session", ViewSession)
+INFO = web.AppKey("info", dict)
+EXECUTOR = web.AppKey("executor", ThreadPoolExecutor)
+
+
+def source_json(session: ViewSession, source: Source) -> dict:
+    return {"key": source.key, "label": source.label, "image": png_data_url(to_uint8(source.image)),
+            "initial": session.controls.initial(source.meta)}
+
+
+def view_json(session: ViewSession, key: str, values: dict[str, float]) -> dict:
+    """Render and encode the PNGs (on the worker thread: both are CPU work)."""
+    t0 = time.perf_counter()
+    v = session.view(key, values)
+    return {"rgb": png_data_url(v.rgb), "depth": png_data_url(v.depth) if v.depth is not None else None,
+            "depth_range": v.depth_range, "model_ms": v.model_ms, "encoded": v.encoded,
+            "server_ms": 1000 * (time.perf_counter() - t0)}
+
+
+async def _in_worker(request: web.Request, fn, *args):
+    return await asyncio.get_running_loop().run_in_executor(request.app[EXECUTOR], fn, *args)
+
+
+async def index(request: web.Request) -> web.FileResponse:
+    return web.FileResponse(STATIC / "index.html")
+
+
+async def info(request: web.Request) -> web.Response:
+    return web.json_response(request.app[INFO])
+
+
+async def view(request: web.Request) -> web.Response:
+    session = request.app[SESSION]
+    query = request.query
+    key = query.get("source")
+    if not key:
+        raise UserError("no source given")
+    values = {}
+    for ax in session.controls.axes:
+        try:
+            values[ax.name] = float(query[ax.name])
+        except KeyError:
+            raise UserError(f"missing pose value '{ax.name}'") from None
+        except ValueError:
+            raise UserError(f"{ax.name}={query[ax.name]!r} is not a number") from None
+    return web.json_response(await _in_worker(request, view_json, session, key, values))
+
+
+async def upload(request: web.Request) -> web.Response:
+    session = request.app[SESSION]
+    form = await request.post()
+    field = form.get("image")
+    if not isinstance(field, web.FileField):
+        raise UserError("no file in the upload (form field 'image')")
+    data = field.file.read()
+    source = await _in_worker(request, session.add_upload, data, field.filename or "upload")
+    return web.json_response(source_json(session, source))
+
+
+@web.middleware
+async def json_errors(request: web.Request, handler):
+    """Every failure becomes {"error": message}; the page shows it and the server keeps running."""
+    try:
+        return await handler(request)
+    except UserError as err:
+        return web.json_response({"error": str(err)}, status=400)
+    except web.HTTPRequestEntityTooLarge:
+        return web.json_response({"error": f"the file is larger than {MAX_UPLOAD_MB} MB"}, status=413)
+    except web.HTTPException:
+        raise
+    except Exception as err:  # noqa: BLE001 - a bug in one request must not stop the viewer
+        log.exception("request %s failed", request.rel_url)
+        return web.json_response({"error": f"internal error: {err.__class__.__name__}: {err}"}, status=500)
+
+
+def build_app(session: ViewSession, meta: dict, threads: int | None = None) -> web.Application:
+    """The aiohttp application; ``meta`` (model, data, checkpoint, precision) is shown on the page."""
+    app = web.Application(client_max_size=MAX_UPLOAD_MB * 2**20, middlewares=[json_errors])
+    app[SESSION] = session
+    app[INFO] = {**meta, "image_size": session.image_size, "controls": describe(session.controls),
+                 "gallery": [source_json(session, s) for s in session.gallery.values()]}
+    app[EXECUTOR] = ThreadPoolExecutor(1, thread_name_prefix="nvs-viewer",
+                                       initializer=torch.set_num_threads if threads else None,
+                                       initargs=(threads,) if threads else ())
+
+    async def shutdown(app: web.Application) -> None:
+        app[EXECUTOR].shutdown(wait=False, cancel_futures=True)
+
+    app.on_cleanup.append(shutdown)
+    app.router.add_get("/", index)
+    app.router.add_get("/api/info", info)
+    app.router.add_get("/api/view", view)
+    app.router.add_post("/api/upload", upload)
+    app.router.add_static("/static", STATIC)
+    return app
+
+
+def check_address(host: str, port: int) -> None:
+    """Loopback only, and a port that is free now (0: any free port); one clear UserError otherwise."""
+    try:
+        loopback = ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        loopback = False
+    if not loopback:
+        raise UserError(f"host={host!r}: the viewer serves on a loopback address only (127.0.0.1)")
+    if not isinstance(port, int) or not 0 <= port <= 65535:
+        raise UserError(f"port={port!r}: expected a port number 0..65535 (0: any free port)")
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the server binds: TIME_WAIT is no conflict
+        try:
+            s.bind((host, port))
+        except OSError as err:
+            raise _bind_error(host, port, err) from None
+
+
+def _bind_error(host: str, port: int, err: OSError) -> UserError:
+    if err.errno == errno.EADDRINUSE:
+        return UserError(f"port {port} on {host} is already in use: pass port=<another> (or port=0 for any free port)")
+    return UserError(f"cannot listen on {host}:{port}: {err.strerror or err}")
+
+
+async def _serve(app: web.Application, host: str, port: int) -> None:
+    runner = web.AppRunner(app, access_log=None)
+    await runner.setup()
+    try:
+        await web.TCPSite(runner, host, port).start()
+    except OSError as err:
+        await runner.cleanup()
+        raise _bind_error(host, port, err) from None
+    bound_host, bound_port = runner.addresses[0][:2]
+    shown = f"[{bound_host}]" if ":" in bound_host else bound_host
+    print(f"viewer: http://{shown}:{bound_port}/  (Ctrl-C stops it)", flush=True)
+    try:
+        await asyncio.Event().wait()
+    finally:
+        await runner.cleanup()
+
+
+def serve(app: web.Application, host: str, port: int) -> None:
+    """Serve until interrupted; prints the URL (with the chosen port when ``port`` is 0) once listening."""
+    try:
+        asyncio.run(_serve(app, host, port))
+    except KeyboardInterrupt:
+        print("viewer: stopped", flush=True)

@@ -1,0 +1,129 @@
+"""The viewer's model session: each source image is encoded once; a pose change re-runs only the pose step.
+
+A network with ``encode(src)`` and ``render(encoded, batch)`` (``NVSNet``) is split there; any other network of the
+``forward(batch)`` contract (the baselines) runs whole for each view. Execution is the fast mode of training:
+channels_last weights and inputs, bf16 autocast on CPU (or float32), under ``inference_mode``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import torch.nn as nn
+
+from nvs.errors import UserError
+from nvs.viewer.controls import ObjectControls, SceneControls
+from nvs.viewer.images import decode_upload, depth_to_uint8, to_uint8
+
+# Autocast dtype per precision name (Lightning's names, as in the trainer config).
+PRECISIONS: dict[str, torch.dtype | None] = {"bf16-mixed": torch.bfloat16, "32-true": None}
+
+
+@dataclass
+class Source:
+    """A source image the page can pick: ``key`` names it in requests, ``meta`` holds its pose (object views)."""
+
+    key: str
+    label: str
+    image: torch.Tensor  # (3,S,S) uint8
+    meta: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class View:
+    """One rendered view: images as uint8 arrays, the depth's range, and the model time it took."""
+
+    rgb: np.ndarray  # (S,S,3) uint8
+    depth: np.ndarray | None  # (S,S) uint8, near = bright; None for models without depth
+    depth_range: tuple[float, float] | None
+    model_ms: float  # encoder (when it ran) + pose step + copy to uint8
+    encoded: bool  # the encoder ran for this view (a source not seen recently)
+
+
+class ViewSession:
+    """The model, its camera and the sources; not thread-safe: the server calls it from one worker thread.
+
+    Args:
+        net: a network of the ``forward(batch)`` contract, with ``encode``/``render`` when it can be split.
+        K: (3,3) intrinsics at the model's size; pivot: (3,) latent pivot.
+        controls: the data format's pose controls.
+        gallery: the test-split sources offered on the page.
+        autocast: bf16 (the fast mode) or None (float32).
+        cache_size: encoded sources (and uploads) kept.
+    """
+
+    def __init__(self, net: nn.Module, image_size: int, K: torch.Tensor, pivot: torch.Tensor,
+                 controls: ObjectControls | SceneControls, gallery: list[Source], autocast: torch.dtype | None,
+                 cache_size: int = 8):
+        if not gallery:
+            raise UserError("the dataset's test split has no source images for the gallery")
+        self.net = net.eval().to(memory_format=torch.channels_last)
+        self.image_size = image_size
+        self.K, self.pivot = K.float()[None], pivot.float()[None]
+        self.controls = controls
+        self.gallery = {s.key: s for s in gallery}
+        self.autocast = autocast
+        self.cache_size = cache_size
+        self.uploads: OrderedDict[str, Source] = OrderedDict()
+        self._encoded: OrderedDict[str, object] = OrderedDict()
+        # Capability, not config: a network that can be split is split.
+        self.splits = callable(getattr(net, "encode", None)) and callable(getattr(net, "render", None))
+        self.encoder_runs = 0
+
+    # -- sources ---------------------------------------------------------------------------------------------------
+    def source(self, key: str) -> Source:
+        src = self.gallery.get(key) or self.uploads.get(key)
+        if src is None:
+            raise UserError(f"unknown source '{key}' (uploads are kept for the last {self.cache_size} images)")
+        return src
+
+    def add_upload(self, data: bytes, name: str) -> Source:
+        """Decode an uploaded file into a source (centre-cropped, resized); the same bytes give the same key."""
+        image = decode_upload(data, self.image_size, name)
+        key = "upload-" + hashlib.sha1(data).hexdigest()[:12]
+        self.uploads[key] = Source(key, name, image, dict(self.controls.upload_meta))
+        self.uploads.move_to_end(key)
+        while len(self.uploads) > self.cache_size:
+            old, _ = self.uploads.popitem(last=False)
+            self._encoded.pop(old, None)
+        return self.uploads[key]
+
+    # -- rendering -------------------------------------------------------------------------------------------------
+    def _context(self):
+        return torch.autocast("cpu", dtype=self.autocast or torch.bfloat16, enabled=self.autocast is not None)
+
+    def _src(self, source: Source) -> torch.Tensor:
+        return (source.image.float() / 255.0)[None].contiguous(memory_format=torch.channels_last)
+
+    def _encode(self, source: Source) -> tuple[object, bool]:
+        """The cached encoding of a source (the source image itself for networks that run whole)."""
+        hit = self._encoded.get(source.key)
+        if hit is not None:
+            self._encoded.move_to_end(source.key)
+            return hit, False
+        src = self._src(source)
+        encoded = self.net.encode(src) if self.splits else src
+        self.encoder_runs += self.splits
+        self._encoded[source.key] = encoded
+        while len(self._encoded) > self.cache_size + len(self.gallery):
+            self._encoded.popitem(last=False)
+        return encoded, True
+
+    def view(self, key: str, values: dict[str, float]) -> View:
+        """Render source ``key`` at the pose of the control ``values`` (checked against the trained range)."""
+        source = self.source(key)
+        T = self.controls.pose(values, source.meta)[None]
+        t0 = time.perf_counter()
+        with torch.inference_mode(), self._context():
+            encoded, fresh = self._encode(source)
+            batch = {"K": self.K, "T_tgt_src": T, "pivot": self.pivot}
+            out = self.net.render(encoded, batch) if self.splits else self.net({**batch, "src": encoded})
+            rgb = to_uint8(out["rgb"][0])
+            depth = out.get("depth")
+            grey, span = depth_to_uint8(depth[0]) if depth is not None else (None, None)
+        return View(rgb, grey, span, 1000 * (time.perf_counter() - t0), fresh)

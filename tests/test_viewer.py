@@ -1,0 +1,241 @@
+"""The interactive viewer: encode/render split, poses from the data modules' functions, uploads, the loopback-only
+server, the load script, and a real browser (Debian's chromium driven by Playwright) dragging and uploading."""
+
+import io
+import json
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from omegaconf import OmegaConf
+from PIL import Image
+
+from nvs.build import build_module
+from nvs.data.kitti import ScenesFormat
+from nvs.data.shapenet import ObjectsFormat
+from nvs.errors import UserError
+from nvs.models.net import Extras
+from nvs.viewer.controls import ObjectControls, SceneControls
+from nvs.viewer.images import decode_upload
+from nvs.viewer.load import ViewerProcess, measure
+from nvs.viewer.server import check_address
+from nvs.viewer.session import Source, ViewSession
+from tests.conftest import compose_train, fixture_batch
+
+REPO = Path(__file__).resolve().parents[1]
+CHROMIUM = Path("/usr/bin/chromium")
+
+
+def _net(tmp_path, *overrides):
+    cfg = compose_train([f"paths.root_dir={tmp_path}", "loss=[recon]", *overrides])
+    cfg.paths.output_dir = str(tmp_path)
+    OmegaConf.resolve(cfg)
+    torch.manual_seed(0)
+    return build_module(cfg).net.eval()
+
+
+def _png(img: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(img).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+# -- the network split ---------------------------------------------------------------------------------------------
+def test_render_of_encode_is_forward_exactly(tmp_path):
+    net = _net(tmp_path)
+    batch = fixture_batch()
+    needs = frozenset({Extras.DEPTH_FROM_TGT, Extras.DEPTH_SRC, Extras.WARPED_SRC})
+    with torch.no_grad():
+        whole = net(batch, needs)
+        split = net.render(net.encode(batch["src"]), batch, needs)
+    assert set(whole) == set(split)
+    for key in ("rgb", "depth", Extras.DEPTH_FROM_TGT, Extras.DEPTH_SRC, Extras.WARPED_SRC):
+        assert torch.equal(whole[key], split[key]), key
+
+
+# -- poses ---------------------------------------------------------------------------------------------------------
+def test_object_pose_is_the_datasets_pose(objects_root):
+    fmt = ObjectsFormat(objects_root, "chair")
+    controls = ObjectControls(40, (0.0, 0.0, 2.0))
+    meta = controls.source_meta("m3_40_0")
+    assert torch.equal(controls.pose({"azimuth": 20, "elevation": 10}, meta), fmt.pose("m3_60_10", "m3_40_0"))
+    assert torch.equal(controls.pose({"azimuth": -40, "elevation": 20}, meta), fmt.pose("m3_0_20", "m3_40_0"))
+    assert torch.allclose(controls.pose(controls.initial(meta), meta), torch.eye(4), atol=1e-6)
+    ranges = {ax.name: (ax.min, ax.max) for ax in controls.axes}
+    assert ranges == {"azimuth": (-40.0, 40.0), "elevation": (0.0, 20.0)}
+
+
+@pytest.mark.parametrize("values, message", [({"azimuth": 41, "elevation": 0}, "azimuth=41° is outside"),
+                                             ({"azimuth": 0, "elevation": -10}, "elevation=-10° is outside"),
+                                             ({"azimuth": float("nan"), "elevation": 0}, "azimuth=nan"),
+                                             ({"azimuth": 0}, "missing pose value 'elevation'")])
+def test_poses_outside_the_trained_range_are_one_clear_error(values, message):
+    with pytest.raises(UserError, match=message):
+        ObjectControls(40, (0.0, 0.0, 2.0)).pose(values, {"azimuth": 0.0, "elevation": 0.0})
+
+
+def test_scene_ranges_come_from_the_training_pairs_and_forward_moves_the_camera(scenes_root):
+    fmt = ScenesFormat(scenes_root, translation_scale=0.02)
+    controls = SceneControls.from_pairs(fmt.poses, fmt.pairs("train", 0.1, 0), fmt.translation_scale)
+    ranges = {ax.name: (ax.min, ax.max) for ax in controls.axes}
+    # The fixture's frames are 1 m apart along the path, turning 0.01 rad per frame; pairs are consecutive frames.
+    assert ranges["forward"] == (0.0, 1.0) and -0.1 <= ranges["sideways"][0] < 0.0 == ranges["sideways"][1]
+    T = controls.pose({"forward": 1.0, "sideways": 0.0}, {})
+    point = T @ torch.tensor([0.0, 0.0, 0.4, 1.0])  # 20 m ahead, in the data's scaled units
+    assert torch.allclose(point, torch.tensor([0.0, 0.0, 0.38, 1.0]))  # 1 m closer after moving 1 m forward
+    right = controls.pose({"forward": 0.0, "sideways": ranges["sideways"][0]}, {}) @ torch.tensor([0.0, 0, 0.4, 1])
+    assert right[0] > 0  # the camera moved left: the point is now to its right
+
+
+# -- uploads -------------------------------------------------------------------------------------------------------
+def test_upload_is_centre_cropped_resized_and_alpha_on_white():
+    img = np.zeros((200, 300, 3), np.uint8)
+    img[:] = (0, 0, 255)
+    img[:, 40:260] = (255, 0, 0)  # the centre square is columns 50..250; the resampling filter reaches a little beyond
+    out = decode_upload(_png(img), 64)
+    assert out.shape == (3, 64, 64) and out.dtype == torch.uint8
+    assert (out[0] > 250).all() and (out[2] < 5).all()  # only the red centre is left
+    rgba = np.zeros((32, 32, 4), np.uint8)  # fully transparent
+    assert (decode_upload(_png(rgba), 64) == 255).all()
+
+
+@pytest.mark.parametrize("data, message", [(b"just some text", "notes.txt is not an image"),
+                                           (b"", "notes.txt: the file is empty"),
+                                           (_png(np.random.default_rng(0).integers(0, 255, (64, 64, 3), np.uint8))
+                                            [:2000], "notes.txt: the image cannot be read")])
+def test_a_file_that_is_not_an_image_is_one_clear_error(data, message):
+    with pytest.raises(UserError, match=message):
+        decode_upload(data, 64, "notes.txt")
+
+
+# -- the session -----------------------------------------------------------------------------------------------------
+def _session(net, autocast=torch.bfloat16) -> ViewSession:
+    batch = fixture_batch(B=2)
+    gallery = [Source(f"g{i}", f"m_{40 * i}_0", (batch["src"][i] * 255).to(torch.uint8), {"azimuth": 40.0 * i,
+                                                                                          "elevation": 0.0})
+               for i in range(2)]
+    return ViewSession(net, 64, batch["K"][0], batch["pivot"][0], ObjectControls(40, (0.0, 0.0, 2.0)), gallery,
+                       autocast)
+
+
+@pytest.mark.parametrize("autocast", [torch.bfloat16, None])
+def test_the_encoder_runs_once_per_source(tmp_path, autocast):
+    session = _session(_net(tmp_path), autocast)
+    views = [session.view("g0", {"azimuth": a, "elevation": 0.0}) for a in (0.0, 20.0, 40.0)]
+    assert session.encoder_runs == 1 and [v.encoded for v in views] == [True, False, False]
+    assert views[0].rgb.shape == (64, 64, 3) and views[0].depth.shape == (64, 64)
+    assert not np.array_equal(views[0].rgb, views[2].rgb)  # the pose changes the view
+    session.view("g1", {"azimuth": 0.0, "elevation": 10.0})
+    session.view("g0", {"azimuth": -10.0, "elevation": 10.0})
+    assert session.encoder_runs == 2
+    with torch.no_grad():  # the split view is the whole network's forward (float32: exact up to rounding to uint8)
+        if autocast is None:
+            T = session.controls.pose({"azimuth": 20.0, "elevation": 0.0}, session.gallery["g0"].meta)[None]
+            batch = {"src": session.gallery["g0"].image[None].float() / 255, "K": session.K, "T_tgt_src": T,
+                     "pivot": session.pivot}
+            ref = (session.net(batch)["rgb"][0].clamp(0, 1) * 255).round().to(torch.uint8).permute(1, 2, 0)
+            assert np.abs(ref.numpy().astype(int) - views[1].rgb.astype(int)).max() <= 1
+
+
+def test_uploads_and_networks_that_do_not_split(tmp_path):
+    session = _session(_net(tmp_path, "model=tatarchenko"))
+    assert not session.splits
+    img = np.full((90, 120, 3), 200, np.uint8)
+    source = session.add_upload(_png(img), "photo.png")
+    assert session.add_upload(_png(img), "photo.png").key == source.key  # same bytes, same source
+    view = session.view(source.key, {"azimuth": 10.0, "elevation": 0.0})
+    assert view.rgb.shape == (64, 64, 3) and view.depth is None and session.encoder_runs == 0
+    with pytest.raises(UserError, match="unknown source 'nope'"):
+        session.view("nope", {"azimuth": 0.0, "elevation": 0.0})
+
+
+# -- server start-up -----------------------------------------------------------------------------------------------
+def test_loopback_only_and_a_taken_port_is_one_clear_error(tmp_path):
+    with pytest.raises(UserError, match="loopback address only"):
+        check_address("0.0.0.0", 8765)
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        with pytest.raises(UserError, match=f"port {port} on 127.0.0.1 is already in use"):
+            check_address("127.0.0.1", port)
+        res = subprocess.run([sys.executable, "-m", "nvs.viewer", "ckpt_path=any.ckpt", f"port={port}",
+                              f"hydra.run.dir={tmp_path}"], cwd=REPO,
+                             capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2 and "already in use" in res.stderr and "Traceback" not in res.stderr
+
+
+# -- a real server: the load script and a real browser -------------------------------------------------------------
+@pytest.fixture(scope="module")
+def viewer_url(objects_root, tmp_path_factory):
+    """A checkpoint trained for one step in this test, served by ``python -m nvs.viewer`` on a free port."""
+    from nvs.train import run
+
+    out = tmp_path_factory.mktemp("viewer_run")
+    cfg = compose_train([f"data.root={objects_root}", f"paths.log_dir={out}", "trainer.max_steps=1",
+                         "trainer.val_check_interval=1", "trainer.limit_val_batches=1", "data.loader.batch_size=2",
+                         "data.loader.eval_batch_size=2", "loss=[recon]", "test=false",
+                         "trainer.enable_progress_bar=false", "channels_last=true"])
+    cfg.paths.output_dir = str(out)
+    OmegaConf.resolve(cfg)
+    run(cfg, out)
+    ckpt = out / "checkpoints" / "last.ckpt"
+    with ViewerProcess([f"ckpt_path={ckpt}", f"hydra.run.dir={out / 'viewer'}", "gallery=3"], cwd=REPO) as url:
+        yield url
+
+
+def test_load_script_measures_views_through_the_endpoint(viewer_url):
+    result = measure(viewer_url, requests=4, warmup=1)
+    assert result["image_size"] == 64 and result["requests"] == 4 and result["views_per_s"] > 0
+    assert result["encoder_reruns"] == 0 and result["switch_median_ms"] is not None
+    assert result["model_median_ms"] <= result["server_median_ms"] <= result["median_ms"]
+
+
+@pytest.mark.skipif(not CHROMIUM.is_file(), reason="needs Debian's chromium at /usr/bin/chromium "
+                                                    "(scripts/install_assets.sh installs it)")
+def test_browser_drag_changes_the_view_and_a_bad_upload_shows_an_error(viewer_url):
+    from playwright.sync_api import expect, sync_playwright
+
+    idle = "document.body.dataset.busy === 'false' && +document.body.dataset.views >= {}"
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=str(CHROMIUM), headless=True)
+        page = browser.new_page()
+        page_errors = []
+        page.on("pageerror", lambda err: page_errors.append(str(err)))
+        page.goto(viewer_url)
+        page.wait_for_function(idle.format(1), timeout=30_000)
+        expect(page.locator("#controls")).to_contain_text("trained range -40° … 40°")
+        before = page.get_attribute("#synth", "src")
+        views = int(page.get_attribute("body", "data-views"))
+        assert before.startswith("data:image/png") and page.get_attribute("#depth", "src").startswith("data:image")
+
+        box = page.locator("#drag").bounding_box()
+        x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+        page.mouse.move(x, y)
+        page.mouse.down()
+        page.mouse.move(x + box["width"] / 3, y - box["height"] / 3, steps=8)
+        page.mouse.up()
+        page.wait_for_function(idle.format(views + 1), timeout=30_000)
+        assert page.get_attribute("#synth", "src") != before
+        assert float(page.input_value("#axis-azimuth")) > 20 and float(page.input_value("#axis-elevation")) > 0
+        expect(page.locator("#error")).to_be_hidden()
+        expect(page.locator("#stats")).to_contain_text("ms end to end")
+
+        page.set_input_files("#upload", files=[{"name": "notes.txt", "mimeType": "text/plain",
+                                                 "buffer": b"not an image"}])
+        expect(page.locator("#error")).to_contain_text("Upload failed: notes.txt is not an image")
+
+        # The server kept running: a real upload becomes the source and renders.
+        views = int(page.get_attribute("body", "data-views"))
+        photo = np.zeros((48, 80, 3), np.uint8)
+        photo[:, 20:60] = (30, 160, 60)
+        page.set_input_files("#upload", files=[{"name": "photo.png", "mimeType": "image/png", "buffer": _png(photo)}])
+        page.wait_for_function(idle.format(views + 1), timeout=30_000)
+        expect(page.locator("#source-label")).to_have_text("photo.png")
+        expect(page.locator("#error")).to_be_hidden()
+        browser.close()
+    assert not page_errors
