@@ -163,3 +163,66 @@ def about_pivot(T: torch.Tensor, pivot: torch.Tensor) -> torch.Tensor:
     R, t = T[..., :3, :3], T[..., :3, 3]
     t_new = (R @ pivot[..., None])[..., 0] + t - pivot
     return pose_matrix(R, t_new)
+
+
+def max_warp_displacement(K: torch.Tensor, T_tgt_src: torch.Tensor, depth_min: torch.Tensor,
+                          depth_max: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """Upper bound on how far ``inverse_warp`` moves any pixel: max |p_s - p_t| over the image and the depth range.
+
+    K (B,3,3) at this resolution, T_tgt_src (B,4,4), depth_min / depth_max (B,) target depths (pose units),
+    size (H, W) -> bound (B,) in pixels, float64; ``inf`` where no finite bound exists (a point of the range can
+    reach z <= MIN_DEPTH in the source camera, or the depth range is not finite and positive). Exactly 0 for the
+    identity pose.
+
+    Derivation. In coordinates centred on the image (K_c = K with c shifted by -((W-1)/2, (H-1)/2), so target pixels
+    p = (u, v, 1) have |u| <= U = (W-1)/2, |v| <= V = (H-1)/2) and with inverse depth w = 1/D and
+    T_src_tgt = [R | t], the source pixel is p_s = q_xy / q_z with q = H p + w b, H = K_c R K_c^-1 = I + M,
+    b = K_c t. Then p_s - p = N / s with
+        s = q_z = 1 + m31 u + m32 v + m33 + w b_z                       (affine in u, v, w)
+        N = [M_xy p - (m3 . p) p_xy] + w [b_xy - b_z p_xy]              (rotation + parallax)
+    For a fixed pixel p_s moves along a line as w varies, so |p_s - p| peaks at w = 1/depth_max or 1/depth_min
+    (given s > 0 in between, which holds when s > 0 at the box corners since s is affine). For each of those two w,
+    |N| is bounded term by term over the box (|u'^2| <= U^2, |u v| <= U V):
+        |N_x| <= |m13| + |m11 - m33| U + |m12| V + |m31| U^2 + |m32| U V + w (|b_x| + |b_z| U)
+        |N_y| <= |m23| + |m21| U + |m22 - m33| V + |m31| U V + |m32| V^2 + w (|b_y| + |b_z| V)
+    and s from below by its minimum over the corners, 1 + m33 - |m31| U - |m32| V + w b_z. The bound is
+    max over the two w of sqrt(N_x^2 + N_y^2) / s_min. It is exact for a pure translation parallel to the image
+    plane (f |t_x| / depth_min) and to first order for small rotations.
+    """
+    B = K.shape[0]
+    _check(K.shape == (B, 3, 3), f"K must have shape (B,3,3), got {tuple(K.shape)}")
+    _check(T_tgt_src.shape == (B, 4, 4), f"T_tgt_src must have shape ({B},4,4), got {tuple(T_tgt_src.shape)}")
+    _check(depth_min.shape == (B,) and depth_max.shape == (B,),
+           f"depth_min/depth_max must have shape ({B},), got {tuple(depth_min.shape)}, {tuple(depth_max.shape)}")
+    H, W = size
+    f64 = torch.float64
+    with torch.autocast(device_type=K.device.type, enabled=False):
+        K, T = K.detach().to(f64), T_tgt_src.detach().to(f64)
+        d_lo, d_hi = depth_min.detach().to(f64), depth_max.detach().to(f64)
+        U, V = (W - 1) / 2, (H - 1) / 2
+        Kc = K.clone()
+        Kc[:, 0, 2] -= U
+        Kc[:, 1, 2] -= V
+        T_src_tgt = invert_pose(T)
+        # R - I and t are exactly zero for the identity pose, so the bound is exactly 0 there.
+        eye = torch.eye(3, dtype=f64, device=K.device)
+        M = Kc @ (T_src_tgt[:, :3, :3] - eye) @ torch.linalg.inv(Kc)
+        b = (Kc @ T_src_tgt[:, :3, 3:])[..., 0]
+        m = M.abs()
+        rot_x = m[:, 0, 2] + (M[:, 0, 0] - M[:, 2, 2]).abs() * U + m[:, 0, 1] * V + m[:, 2, 0] * U * U \
+            + m[:, 2, 1] * U * V
+        rot_y = m[:, 1, 2] + m[:, 1, 0] * U + (M[:, 1, 1] - M[:, 2, 2]).abs() * V + m[:, 2, 0] * U * V \
+            + m[:, 2, 1] * V * V
+        par_x = b[:, 0].abs() + b[:, 2].abs() * U
+        par_y = b[:, 1].abs() + b[:, 2].abs() * V
+        s0 = 1 + M[:, 2, 2] - m[:, 2, 0] * U - m[:, 2, 1] * V
+        ok = torch.isfinite(d_lo) & torch.isfinite(d_hi) & (d_lo > 0) & (d_hi >= d_lo)
+        bound = torch.zeros(B, dtype=f64, device=K.device)
+        for d in (d_lo, d_hi):
+            w = 1 / torch.where(ok, d, torch.ones_like(d))
+            s_min = s0 + w * b[:, 2]
+            # z in the source camera is D * s, affine in D: its minimum over the range is at an end.
+            ok = ok & (s_min / w > MIN_DEPTH)
+            s_safe = torch.where(ok, s_min, torch.ones_like(s_min))
+            bound = torch.maximum(bound, torch.hypot(rot_x + w * par_x, rot_y + w * par_y) / s_safe)
+        return torch.where(ok, bound, torch.full_like(bound, float("inf")))

@@ -9,6 +9,7 @@ from collections.abc import Callable
 import lightning as L
 import torch
 import torch.nn as nn
+from lightning.pytorch.utilities import rank_zero_warn
 
 from nvs import metrics as M
 from nvs.errors import UserError
@@ -48,6 +49,7 @@ class NVSModule(L.LightningModule):
         self.train_needs = frozenset().union(*(term.needs for term in losses.values())) if losses else frozenset()
         self.test_rows: list[dict] = []
         self.test_forward_s = 0.0
+        self._constant_terms_warned = False
         if channels_last:
             self.net.to(memory_format=torch.channels_last)
 
@@ -71,10 +73,18 @@ class NVSModule(L.LightningModule):
         out = self(batch, self.train_needs)
         total = 0.0
         bs = batch["src"].shape[0]
+        constant = []
         for name, term in self.losses.items():
             value = term(out, batch)
             self.log(f"train/loss/{name}", value.detach(), batch_size=bs)
             total = total + term.weight * value
+            if torch.is_grad_enabled() and not value.requires_grad:
+                constant.append(name)
+        if constant and not self._constant_terms_warned:
+            self._constant_terms_warned = True
+            rank_zero_warn(f"loss term(s) {', '.join(constant)} depend on no trainable parameter (e.g. "
+                           "model/depth=oracle makes the depth terms constants): they are logged but train nothing; "
+                           "drop them from loss=[...] to save their compute")
         self.log("train/loss/total", total.detach(), prog_bar=True, batch_size=bs)
         if not torch.isfinite(total):
             if self.nonfinite == "skip":
@@ -111,19 +121,30 @@ class NVSModule(L.LightningModule):
     def on_test_epoch_start(self):
         self.test_rows = []
         self.test_forward_s = 0.0
+        for counter in self._skip_counters():
+            counter.reset_counts()
+
+    def _skip_counters(self) -> list[nn.Module]:
+        # Components that skip work per sample (adaptive skips) count what they skipped; see skip_fractions().
+        return [m for m in self.net.modules() if hasattr(m, "skip_fractions")]
 
     def test_forward_ms_per_image(self) -> float | None:
         """Forward time alone (no metrics) per test pair of the last test epoch."""
         return 1000 * self.test_forward_s / len(self.test_rows) if self.test_rows else None
 
     def test_summary(self) -> dict[str, float]:
-        """Mean of every per-image metric over the test pairs (NaN entries, e.g. no valid depth, are ignored)."""
+        """Mean of every per-image metric over the test pairs (NaN entries, e.g. no valid depth, are ignored), and
+        for a model that skips warps the fraction of (sample, level) warps it skipped: ``warp_skipped`` over all
+        levels, ``warp_skipped_<level>`` per level."""
         keys = [k for k in (self.test_rows[0] if self.test_rows else {}) if k not in ("id_src", "id_tgt")]
         summary = {}
         for k in keys:
             vals = [r[k] for r in self.test_rows if not math.isnan(r[k])]
             summary[k] = sum(vals) / len(vals) if vals else float("nan")
         summary["n_pairs"] = len(self.test_rows)
+        for counter in self._skip_counters():
+            for level, fraction in counter.skip_fractions().items():
+                summary["warp_skipped" if level == "all" else f"warp_skipped_{level}"] = fraction
         return summary
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:

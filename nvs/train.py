@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import collections
+import statistics
 import time
 import zipfile
 from pathlib import Path
@@ -20,29 +22,46 @@ from nvs.run_files import summary_line, write_metrics, write_per_image
 
 
 class _Throughput(L.Callback):
-    """Wall time and samples/s of the fit (validation excluded from samples, included in wall time).
+    """Wall time and samples/s of the fit (validation excluded from samples, included in wall time), and the median
+    time of one training step (forward, backward, optimizer; data loading and validation excluded).
 
     Its state travels in checkpoints, so a resumed run reports the time and samples of all its segments.
     """
 
+    WARMUP_STEPS = 5  # first steps of each process segment left out of the step-time median (allocation, caches)
+    KEPT_STEPS = 2000  # the median is over the most recent steps
+
     def __init__(self):
         self.samples, self.start, self.prior_s, self.train_s = 0, None, 0.0, 0.0
+        self.step_s: collections.deque[float] = collections.deque(maxlen=self.KEPT_STEPS)
+        self._step_start, self._segment_steps = None, 0
 
     def on_train_start(self, trainer, pl_module):
         self.start = time.perf_counter()
 
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        self._step_start = time.perf_counter()
+
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
         self.samples += batch["src"].shape[0]
+        self._segment_steps += 1
+        if self._step_start is not None and self._segment_steps > self.WARMUP_STEPS:
+            self.step_s.append(time.perf_counter() - self._step_start)
 
     def on_train_end(self, trainer, pl_module):
         self.train_s = self.prior_s + time.perf_counter() - self.start
 
+    def step_ms(self) -> float | None:
+        """Median training-step time in ms (None before any step past the warm-up)."""
+        return 1000 * statistics.median(self.step_s) if self.step_s else None
+
     def state_dict(self):
         elapsed = time.perf_counter() - self.start if self.start is not None else 0.0
-        return {"train_s": self.prior_s + elapsed, "samples": self.samples}
+        return {"train_s": self.prior_s + elapsed, "samples": self.samples, "step_s": list(self.step_s)}
 
     def load_state_dict(self, state_dict):
         self.prior_s, self.samples = float(state_dict["train_s"]), int(state_dict["samples"])
+        self.step_s.extend(state_dict.get("step_s", []))
 
 
 def _resume_path(cfg: DictConfig, out_dir: Path) -> str | None:
@@ -84,6 +103,7 @@ def run(cfg: DictConfig, out_dir: Path) -> dict:
         "steps": int(trainer.global_step),
         "train_wall_s": throughput.train_s,
         "train_samples_per_s": throughput.samples / throughput.train_s if throughput.train_s else None,
+        "train_step_ms": throughput.step_ms(),
         "params": parameter_count(module.net),
         "device": device_name(module.device),
         "precision": str(cfg.trainer.precision),

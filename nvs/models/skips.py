@@ -1,6 +1,9 @@
-"""Skip connections from the encoder to the pixel decoder: warped by the target depth (the paper), plain, or none.
+"""Skip connections from the encoder to the pixel decoder: warped by the target depth (the paper), warped only where
+the warp moves something (adaptive), plain, or none.
 
 Each option is chosen once at build time (Hydra group ``model/skips``); ``levels`` lists the encoder levels used.
+Levels that are off cost nothing here, and nothing in the encoder either: every level lies on the encoder's path
+to the latent, so there is no skip-only computation to drop (pinned by tests/test_skip.py).
 """
 
 from __future__ import annotations
@@ -8,7 +11,7 @@ from __future__ import annotations
 import torch
 import torch.nn as nn
 
-from nvs.geometry import downsample_depth, inverse_warp, scale_intrinsics
+from nvs.geometry import downsample_depth, inverse_warp, max_warp_displacement, scale_intrinsics
 from nvs.models.encoder import SKIP_CHANNELS, SKIP_STRIDES
 
 
@@ -28,6 +31,12 @@ class _LevelSkips(nn.Module):
         self.levels = _check_levels(levels)
 
 
+def _at_level(lv: str, f: torch.Tensor, depth: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The depth downsampled to a level's features f (B,C,h,w) and K scaled to it: (B,1,h,w), (B,3,3)."""
+    s = SKIP_STRIDES[lv]
+    return downsample_depth(depth, tuple(f.shape[-2:])), (scale_intrinsics(K, 1.0 / s) if s != 1 else K)
+
+
 class WarpedSkips(_LevelSkips):
     """Warp each level's features into the target view with the depth downsampled to it and K scaled to it."""
 
@@ -37,11 +46,75 @@ class WarpedSkips(_LevelSkips):
                 T_tgt_src: torch.Tensor) -> dict[str, torch.Tensor]:
         out = {}
         for lv in self.levels:
+            d, Ks = _at_level(lv, feats[lv], depth, K)
+            out[lv], _ = inverse_warp(feats[lv], d, Ks, T_tgt_src)
+        return out
+
+
+def level_displacement(d: torch.Tensor, K: torch.Tensor, T_tgt_src: torch.Tensor) -> torch.Tensor:
+    """Bound on the pixel displacement of warping with depth d (B,1,h,w) at K (B,3,3) -> (B,) float64, per sample.
+
+    Uses the depth map's own per-sample range, so it holds for the depth actually used; any depth that is not
+    finite and positive (no data: the warp zeroes those pixels) makes the bound ``inf``.
+    """
+    flat = d.detach().flatten(1)
+    usable = (torch.isfinite(flat) & (flat > 0)).all(1)
+    lo = torch.where(usable, flat.amin(1), torch.nan)
+    hi = torch.where(usable, flat.amax(1), torch.nan)
+    return max_warp_displacement(K, T_tgt_src, lo, hi, tuple(d.shape[-2:]))
+
+
+class AdaptiveWarpedSkips(_LevelSkips):
+    """Warped skips that skip the warp of a (sample, level) whose bound on the displacement is below threshold_px.
+
+    For each level, ``level_displacement`` bounds how far the warp could move any pixel of that sample at that
+    level's resolution (from the pose, K and the depth's range); samples below ``threshold_px`` pass their features
+    unwarped, the others are warped as a subset and scattered back. With the identity pose the bound is exactly 0,
+    so the output equals the unwarped features (which the warp reproduces up to round-off); ``threshold_px=0``
+    warps everything, as ``WarpedSkips``. Counts of skipped warps per level accumulate until ``reset_counts``.
+    """
+
+    needs_depth = True
+
+    def __init__(self, levels=("conv0", "conv2", "conv3", "conv4"), threshold_px: float = 0.5):
+        super().__init__(levels)
+        if not threshold_px >= 0:
+            raise ValueError(f"threshold_px must be >= 0, got {threshold_px}")
+        self.threshold_px = float(threshold_px)
+        self.reset_counts()
+
+    def reset_counts(self) -> None:
+        # Plain integers, not buffers: counts are per process and never belong in a checkpoint.
+        self.skipped = dict.fromkeys(self.levels, 0)
+        self.seen = dict.fromkeys(self.levels, 0)
+
+    def skip_fractions(self) -> dict[str, float]:
+        """Fraction of (sample, level) warps skipped since the last reset: per level and over all levels ('all')."""
+        seen = sum(self.seen.values())
+        if not seen:
+            return {}
+        out = {lv: self.skipped[lv] / self.seen[lv] for lv in self.levels}
+        out["all"] = sum(self.skipped.values()) / seen
+        return out
+
+    def forward(self, feats: dict[str, torch.Tensor], depth: torch.Tensor, K: torch.Tensor,
+                T_tgt_src: torch.Tensor) -> dict[str, torch.Tensor]:
+        out = {}
+        for lv in self.levels:
             f = feats[lv]
-            s = SKIP_STRIDES[lv]
-            d = downsample_depth(depth, tuple(f.shape[-2:]))
-            Ks = scale_intrinsics(K, 1.0 / s) if s != 1 else K
-            out[lv], _ = inverse_warp(f, d, Ks, T_tgt_src)
+            d, Ks = _at_level(lv, f, depth, K)
+            warp = level_displacement(d, Ks, T_tgt_src) >= self.threshold_px
+            idx = warp.nonzero()[:, 0]
+            n = idx.numel()
+            self.seen[lv] += f.shape[0]
+            self.skipped[lv] += f.shape[0] - n
+            if n == 0:
+                out[lv] = f
+            elif n == f.shape[0]:
+                out[lv], _ = inverse_warp(f, d, Ks, T_tgt_src)
+            else:
+                warped, _ = inverse_warp(f[idx], d[idx], Ks[idx], T_tgt_src[idx])
+                out[lv] = f.index_copy(0, idx, warped)
         return out
 
 
