@@ -6,7 +6,7 @@ with the pose sweeping the trained range, after warm-up requests. Each latency i
 pose step, PNG encoding, JSON, reading the body). Reports the median (views/s = 1000 / median ms), p10/p90, the
 server's own model and server times, and the latency of a source switch (encoder + pose step); writes a JSON report
 (command, git SHA, date, device, load average before and after) to ``load.out`` (default
-``results/viewer/load_<size>.json``).
+``results/viewer/load_<size>.json``, ``load_<size>_<n>threads.json`` with ``threads=<n>``).
 """
 
 from __future__ import annotations
@@ -126,6 +126,9 @@ def measure(url: str, requests: int, warmup: int) -> dict:
         "median_ms": median, "p10_ms": lat[int(0.1 * (len(lat) - 1))], "p90_ms": lat[int(0.9 * (len(lat) - 1))],
         "views_per_s": 1000.0 / median,
         "model_median_ms": statistics.median(v["model_ms"] for v, _ in views),
+        # CPU time of the server's model thread: with threads=1 all of the model's work, i.e. its latency on an idle
+        # core, which a CPU shared with other jobs does not inflate the way it inflates wall-clock times.
+        "model_cpu_median_ms": statistics.median(v["model_cpu_ms"] for v, _ in views),
         "server_median_ms": statistics.median(v["server_ms"] for v, _ in views),
         "encoder_reruns": sum(bool(v["encoded"]) for v, _ in views),
         "switch_median_ms": statistics.median(ms for _, ms in switch) if switch else None,
@@ -145,10 +148,12 @@ def main(cfg: DictConfig) -> None:
         "device": device_name(), "threads": cfg.threads,
         "loadavg_1min_before": load_before[0], "loadavg_1min_after": os.getloadavg()[0], **result,
     }
-    out = Path(cfg.load.out or f"results/viewer/load_{result['image_size']}.json")
+    threads = f"_{cfg.threads}threads" if cfg.threads else ""
+    out = Path(cfg.load.out or f"results/viewer/load_{result['image_size']}{threads}.json")
     write_json(out, report)
     print(f"{result['image_size']}²: {result['views_per_s']:.1f} views/s (median {result['median_ms']:.1f} ms end to "
-          f"end, p10 {result['p10_ms']:.1f}, p90 {result['p90_ms']:.1f}; model {result['model_median_ms']:.1f} ms; "
+          f"end, p10 {result['p10_ms']:.1f}, p90 {result['p90_ms']:.1f}; model {result['model_median_ms']:.1f} ms, "
+          f"model thread CPU {result['model_cpu_median_ms']:.1f} ms; "
           f"source switch {result['switch_median_ms'] or float('nan'):.1f} ms) over {result['requests']} requests")
     print(f"wrote {out}")
 

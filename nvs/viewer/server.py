@@ -46,8 +46,8 @@ def view_json(session: ViewSession, key: str, values: dict[str, float]) -> dict:
     t0 = time.perf_counter()
     v = session.view(key, values)
     return {"rgb": png_data_url(v.rgb), "depth": png_data_url(v.depth) if v.depth is not None else None,
-            "depth_range": v.depth_range, "model_ms": v.model_ms, "encoded": v.encoded,
-            "server_ms": 1000 * (time.perf_counter() - t0)}
+            "depth_range": v.depth_range, "model_ms": v.model_ms, "model_cpu_ms": v.model_cpu_ms,
+            "encoded": v.encoded, "server_ms": 1000 * (time.perf_counter() - t0)}
 
 
 async def _in_worker(request: web.Request, fn, *args):

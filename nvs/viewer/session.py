@@ -41,7 +41,8 @@ class View:
     rgb: np.ndarray  # (S,S,3) uint8
     depth: np.ndarray | None  # (S,S) uint8, near = bright; None for models without depth
     depth_range: tuple[float, float] | None
-    model_ms: float  # encoder (when it ran) + pose step + copy to uint8
+    model_ms: float  # encoder (when it ran) + pose step + copy to uint8, wall clock
+    model_cpu_ms: float  # CPU time of the calling thread for the same work (all of it when torch runs 1 thread)
     encoded: bool  # the encoder ran for this view (a source not seen recently)
 
 
@@ -118,7 +119,7 @@ class ViewSession:
         """Render source ``key`` at the pose of the control ``values`` (checked against the trained range)."""
         source = self.source(key)
         T = self.controls.pose(values, source.meta)[None]
-        t0 = time.perf_counter()
+        t0, cpu0 = time.perf_counter(), time.thread_time()
         with torch.inference_mode(), self._context():
             encoded, fresh = self._encode(source)
             batch = {"K": self.K, "T_tgt_src": T, "pivot": self.pivot}
@@ -126,4 +127,4 @@ class ViewSession:
             rgb = to_uint8(out["rgb"][0])
             depth = out.get("depth")
             grey, span = depth_to_uint8(depth[0]) if depth is not None else (None, None)
-        return View(rgb, grey, span, 1000 * (time.perf_counter() - t0), fresh)
+        return View(rgb, grey, span, 1000 * (time.perf_counter() - t0), 1000 * (time.thread_time() - cpu0), fresh)
