@@ -14,7 +14,8 @@ so a stale checkpoint is never resumed. A failed job leaves ``failed.txt`` (its 
 failed in the tables.
 
 Collection writes ``results/<study>.csv`` (one line per job) and ``results/<study>.md`` (mean ± std over seeds
-per row, the paper's numbers beside ours), both atomically.
+per row, the paper's numbers beside ours; or, with ``table: cost``, cost against error with the cheapest row within
+1% of the best L1 marked), both atomically.
 """
 
 from __future__ import annotations
@@ -57,6 +58,15 @@ METRIC_FORMAT = {
     "depth_l1_rel": ("depth L1-rel", "↓", 4), "depth_l1_inv": ("depth L1-inv", "↓", 4),
     "depth_sc_inv": ("depth sc-inv", "↓", 4),
 }
+SKIP_LEVELS = ("conv0", "conv2", "conv3", "conv4")
+# Fraction of (sample, level) warps an adaptive-skips model skipped at test time, overall and per level.
+SKIP_FRACTIONS = ("warp_skipped", *(f"warp_skipped_{lv}" for lv in SKIP_LEVELS))
+# Costs read from metrics.json: eval forward time per test image (no metrics), median train step time.
+COSTS = ("eval_ms_per_image", "eval_forward_ms_per_image", "train_step_ms")
+# Table layouts: 'metrics' (the paper's tables: metrics, params, costs, paper numbers) or 'cost' (cost against error,
+# the cheapest row within PICK_L1_TOLERANCE of the best non-oracle L1 marked).
+TABLES = ("metrics", "cost")
+PICK_L1_TOLERANCE = 0.01
 JOB_RECORD = "sweep_job.json"
 FAILED = "failed.txt"
 STDERR = "stderr.log"
@@ -65,8 +75,8 @@ NEUTRAL_KEYS = ("paths", "hydra", "ckpt_path", "out_dir", "task_name", "tags",
                 "trainer.enable_progress_bar", "trainer.enable_model_summary")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 _STUDY_KEYS = {"name", "title", "description", "paper_source", "seeds", "size", "steps", "paper_scale", "overrides",
-               "metrics", "group_by", "rows"}
-_ROW_KEYS = {"name", "label", "run", "experiment", "overrides", "reference", "data", "paper"}
+               "metrics", "group_by", "table", "rows"}
+_ROW_KEYS = {"name", "label", "run", "experiment", "overrides", "reference", "data", "paper", "oracle"}
 
 
 # -- study files ---------------------------------------------------------------------------------------------------
@@ -82,6 +92,7 @@ class Row:
     reference: str | None = None   # copy_source | gt_warp: evaluated by nvs.evaluate, one seed
     data: str | None = None        # required for reference rows; for trained rows read from the composed config
     paper: dict[str, float] = field(default_factory=dict)
+    oracle: bool = False           # uses ground truth at test time: shown, never the best or the pick of a cost table
 
     @property
     def kind(self) -> str:
@@ -104,6 +115,7 @@ class Study:
     metrics: tuple[str, ...]
     group_by: str | None
     rows: tuple[Row, ...]
+    table: str = "metrics"
 
     @property
     def scale(self) -> str:
@@ -164,7 +176,10 @@ def load_study(path: str | Path, seeds: list[int] | None = None, size: int | Non
             raise UserError(f"{where}: unknown key(s) {sorted(unknown)}; expected {sorted(_ROW_KEYS)}")
         row = Row(name=str(r["name"]), label=str(r.get("label") or r["name"]), run=str(r.get("run") or r["name"]),
                   experiment=r.get("experiment"), overrides=_check_overrides(where, r.get("overrides") or []),
-                  reference=r.get("reference"), data=r.get("data"), paper=dict(r.get("paper") or {}))
+                  reference=r.get("reference"), data=r.get("data"), paper=dict(r.get("paper") or {}),
+                  oracle=r.get("oracle", False))
+        if not isinstance(row.oracle, bool):
+            raise UserError(f"{where}: oracle must be true or false, got {row.oracle!r}")
         for key in (row.name, row.run):
             if not _NAME.match(key):
                 raise UserError(f"{where}: '{key}' must be letters, digits, '_', '.', '-' (it names a directory)")
@@ -191,13 +206,16 @@ def load_study(path: str | Path, seeds: list[int] | None = None, size: int | Non
     group_by = raw.get("group_by")
     if group_by not in (None, "data"):
         raise UserError(f"{path}: group_by must be 'data' or null, got {group_by!r}")
+    table = raw.get("table", "metrics")
+    if table not in TABLES:
+        raise UserError(f"{path}: table must be one of {list(TABLES)}, got {table!r}")
     return Study(
         name=name, path=path, title=str(raw.get("title") or name), description=str(raw.get("description") or ""),
         paper_source=str(raw.get("paper_source") or ""), seeds=tuple(chosen),
         size=int(size if size is not None else raw["size"]), steps=int(steps if steps is not None else raw["steps"]),
         default_size=int(raw["size"]), default_steps=int(raw["steps"]),
         overrides=_check_overrides(f"{path}: overrides", raw.get("overrides") or []),
-        metrics=metrics, group_by=group_by, rows=tuple(rows))
+        metrics=metrics, group_by=group_by, rows=tuple(rows), table=table)
 
 
 # -- jobs ----------------------------------------------------------------------------------------------------------
@@ -545,7 +563,8 @@ def launch_row(study: Study, jobs: list[Job], root: Path, launch: Launch, extra:
 # -- collection ----------------------------------------------------------------------------------------------------
 CSV_COLUMNS = ["study", "row", "label", "kind", "data", "seed", "status", "error", *METRICS, "n_pairs", "params",
                "train_wall_s", "train_samples_per_s", "eval_ms_per_image", "steps", "image_size", "precision",
-               "device", "git_sha", "run_dir", "overrides", *[f"paper_{m}" for m in METRICS]]
+               "device", "git_sha", "run_dir", "overrides", *[f"paper_{m}" for m in METRICS],
+               "eval_forward_ms_per_image", "train_step_ms", *SKIP_FRACTIONS]
 
 
 def _read_overrides(job_dir: Path) -> list[str]:
@@ -578,7 +597,8 @@ def collect(jobs: list[Job]) -> list[dict]:
             **{k: _num(test.get(k)) for k in METRICS},
             "n_pairs": test.get("n_pairs"), "params": m.get("params"),
             "train_wall_s": _num(m.get("train_wall_s")), "train_samples_per_s": _num(m.get("train_samples_per_s")),
-            "eval_ms_per_image": _num(m.get("eval_ms_per_image")), "steps": m.get("steps"),
+            **{k: _num(m.get(k)) for k in COSTS}, **{k: _num(test.get(k)) for k in SKIP_FRACTIONS},
+            "steps": m.get("steps"),
             "image_size": m.get("image_size"), "precision": m.get("precision"), "device": m.get("device"),
             "git_sha": m.get("git_sha"), "run_dir": _shown_path(j.dir),
             "overrides": " ".join(_read_overrides(j.dir)) if j.status == "done" else "",
@@ -650,8 +670,8 @@ def summarize(study: Study, records: list[dict]) -> list[dict]:
         done = [r for r in recs if r["status"] == "done"]
         s = {"row": row.name, "label": row.label, "kind": row.kind, "n_done": len(done), "n_jobs": len(recs),
              "data": next((r["data"] for r in recs if r["data"]), row.data), "paper": row.paper,
-             "notes": _notes(recs)}
-        for k in (*METRICS, "params", "train_wall_s", "eval_ms_per_image"):
+             "oracle": row.oracle, "notes": _notes(recs)}
+        for k in (*METRICS, "params", "train_wall_s", *COSTS, *SKIP_FRACTIONS):
             s[k] = mean_std([_num(r[k]) for r in done])
         out.append(s)
     return out
@@ -706,27 +726,116 @@ def render_markdown(study: Study, records: list[dict], provenance: dict) -> str:
     groups: dict[str | None, list[dict]] = {}
     for r in rows:
         groups.setdefault(r["data"] if study.group_by == "data" else None, []).append(r)
+    if study.table == "cost":
+        lines += _cost_tables(groups, present)
+    else:
+        lines += _metrics_tables(groups, present, paper_metrics)
+    return "\n".join(lines)
+
+
+def _label(r: dict) -> str:
+    return _md_cell(r["label"] + (" (reference)" if r["kind"] == "reference" else "")
+                    + (" (oracle)" if r["oracle"] else ""))
+
+
+def _status(r: dict) -> str:
+    status = "ok" if not r["notes"] else "; ".join(r["notes"])
+    if any(" failed" in n for n in r["notes"]):
+        status = "**FAILED** " + status
+    return _md_cell(status)
+
+
+def _metrics_tables(groups: dict[str | None, list[dict]], present: list[str], paper_metrics: list[str]) -> list[str]:
+    """The paper's layout: metrics, parameters, train wall time, eval time per image, the paper's numbers."""
     paper_titles = [f"Paper {'SSIM' if m == 'ssim_paper' else METRIC_FORMAT[m][0]}" for m in paper_metrics]
     header = ["Method", "n", *[f"{METRIC_FORMAT[m][0]} {METRIC_FORMAT[m][1]}" for m in present],
               "Params", "Train (s)", "Eval (ms/img)", *paper_titles, "Status"]
+    lines = []
     for group, grows in groups.items():
         if group is not None:
             lines += [f"## {group}", ""]
         lines += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
         for r in grows:
-            label = r["label"] + (" (reference)" if r["kind"] == "reference" else "")
-            cells = [_md_cell(label), f"{r['n_done']}/{r['n_jobs']}"]
+            cells = [_label(r), f"{r['n_done']}/{r['n_jobs']}"]
             cells += [_fmt(*r[m], METRIC_FORMAT[m][2]) for m in present]
             cells += [_fmt_params(r["params"][0]), _fmt(*r["train_wall_s"], 0) if r["kind"] == "train" else "—",
                       _fmt(*r["eval_ms_per_image"], 1)]
             cells += [f"{r['paper'][m]:.4f}" if m in r["paper"] else "—" for m in paper_metrics]
-            status = "ok" if not r["notes"] else "; ".join(r["notes"])
-            if any(" failed" in n for n in r["notes"]):
-                status = "**FAILED** " + status
-            cells.append(_md_cell(status))
+            cells.append(_status(r))
             lines.append("| " + " | ".join(cells) + " |")
         lines.append("")
-    return "\n".join(lines)
+    return lines
+
+
+PICK_COST = "eval_forward_ms_per_image"
+
+
+def pick_cheapest(rows: list[dict], cost: str = PICK_COST,
+                  tolerance: float = PICK_L1_TOLERANCE) -> tuple[dict | None, dict | None]:
+    """(best, pick) among one table's trained, non-oracle rows that have a mean L1.
+
+    best has the lowest mean L1; pick has the lowest mean ``cost`` among the rows whose L1 is at most
+    (1 + tolerance) x best's (ties go to the lower L1). Rows are ``summarize`` entries; (None, None) without any.
+    """
+    eligible = [r for r in rows if r["kind"] == "train" and not r["oracle"] and r["l1"][0] is not None]
+    if not eligible:
+        return None, None
+    best = min(eligible, key=lambda r: r["l1"][0])
+    within = [r for r in eligible if r["l1"][0] <= best["l1"][0] * (1 + tolerance) and r[cost][0] is not None]
+    return best, min(within, key=lambda r: (r[cost][0], r["l1"][0]), default=None)
+
+
+def _skipped_cell(r: dict) -> str:
+    if r["warp_skipped"][0] is None:
+        return "—"
+    levels = [r[f"warp_skipped_{lv}"][0] for lv in SKIP_LEVELS]
+    return f"{100 * r['warp_skipped'][0]:.0f}% (" + "/".join("—" if v is None else f"{100 * v:.0f}"
+                                                              for v in levels) + ")"
+
+
+def _cost_tables(groups: dict[str | None, list[dict]], present: list[str]) -> list[str]:
+    """Cost against error per dataset: eval forward time, speed-up over the first trained row, median train step
+    time, the metrics, L1 relative to the best non-oracle row, warps skipped, and the pick (see ``pick_cheapest``)."""
+    pct = f"{100 * PICK_L1_TOLERANCE:g}%"
+    lines = [f"Eval is the forward pass alone per test image (batch of the test loader, metrics excluded); ×: how many "
+             "times faster than the table's first trained row; train is the median time of one training step "
+             "(forward, backward, optimizer). ΔL1 is relative to the best L1 among the trained rows that use no "
+             "ground truth (oracle rows are upper bounds and reference rows are not configurations: neither is "
+             f"ever the best or the pick). ★ marks the cheapest row at evaluation whose L1 is within {pct} of that "
+             "best. Warps skipped: the fraction of (test sample, skip level) warps an adaptive model skipped, then "
+             "per level conv0/conv2/conv3/conv4 in %.", ""]
+    header = ["Configuration", "n", "Eval (ms/img)", "×", "Train (ms/step)",
+              *[f"{METRIC_FORMAT[m][0]} {METRIC_FORMAT[m][1]}" for m in present], "ΔL1", "Warps skipped", "Pick",
+              "Status"]
+    for group, grows in groups.items():
+        if group is not None:
+            lines += [f"## {group}", ""]
+        best, pick = pick_cheapest(grows)
+        base = next((r for r in grows if r["kind"] == "train" and not r["oracle"] and r[PICK_COST][0]), None)
+        lines += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+        for r in grows:
+            cost = r[PICK_COST][0]
+            cells = [_label(r), f"{r['n_done']}/{r['n_jobs']}", _fmt(*r[PICK_COST], 1),
+                     f"{base[PICK_COST][0] / cost:.2f}×" if base and cost else "—",
+                     _fmt(*r["train_step_ms"], 0) if r["kind"] == "train" else "—"]
+            cells += [_fmt(*r[m], METRIC_FORMAT[m][2]) for m in present]
+            cells += [f"{100 * (r['l1'][0] / best['l1'][0] - 1):+.1f}%" if best and r["l1"][0] is not None else "—",
+                      _skipped_cell(r), "★" if r is pick else "", _status(r)]
+            lines.append("| " + " | ".join(cells) + " |")
+        lines += ["", _pick_sentence(best, pick, base, pct), ""]
+    return lines
+
+
+def _pick_sentence(best: dict | None, pick: dict | None, base: dict | None, pct: str) -> str:
+    if best is None or pick is None:
+        return "No pick: no trained row without ground truth has both an L1 and an eval time yet."
+    head = f"**Pick**: {_md_cell(pick['label'])}, the cheapest at evaluation within {pct} of the best L1 " \
+           f"({best['l1'][0]:.4f}, {_md_cell(best['label'])})"
+    if base is None or pick is base:
+        return head + ": no configuration cheaper than the first row stays within that margin, so nothing can be " \
+                      "skipped here at this budget."
+    return head + f": {base[PICK_COST][0] / pick[PICK_COST][0]:.2f}× faster than {_md_cell(base['label'])} at " \
+                  f"{100 * (pick['l1'][0] / base['l1'][0] - 1):+.1f}% L1 against it."
 
 
 def provenance(records: list[dict], command: str) -> dict:

@@ -25,8 +25,8 @@ def _compose_row(study: sweep.Study, row: sweep.Row, seed: int = 0):
 
 
 # -- study files ---------------------------------------------------------------------------------------------------
-def test_the_four_studies_exist():
-    assert {p.stem for p in STUDIES} >= {"comparison_objects", "comparison_drive", "ablation", "depth"}
+def test_the_studies_exist():
+    assert {p.stem for p in STUDIES} >= {"comparison_objects", "comparison_drive", "ablation", "depth", "skip"}
 
 
 @pytest.mark.parametrize("path", STUDIES, ids=lambda p: p.stem)
@@ -83,6 +83,118 @@ def test_ablation_rows_switch_what_they_say():
     assert cfg["chen_chairs"].model.name == "chen"
 
 
+def test_skip_study_rows_switch_what_they_say():
+    study = sweep.load_study(REPO / "sweeps" / "skip.yaml")
+    assert study.table == "cost" and study.group_by == "data"
+    cfg = {r.name: _compose_row(study, r) for r in study.rows if not r.reference}
+    assert {c.data.name for c in cfg.values()} == {"chairs", "cars", "drive"}
+    for data in ("chairs", "cars", "drive"):
+        def get(policy):
+            return cfg[f"skip_{policy}_{data}"].model
+
+        def skips(policy):
+            return get(policy).skips._target_.rsplit(".", 1)[1]
+
+        def depth(policy):
+            return get(policy).depth._target_.rsplit(".", 1)[1]
+
+        assert (skips("full"), depth("full")) == ("WarpedSkips", "PredictedDepth")
+        assert (skips("adaptive"), depth("adaptive")) == ("AdaptiveWarpedSkips", "PredictedDepth")
+        assert get("adaptive").skips.threshold_px == 0.5 and len(get("adaptive").skips.levels) == 4
+        assert (skips("plane"), depth("plane")) == ("WarpedSkips", "PlaneDepth")
+        assert (skips("plane_adaptive"), depth("plane_adaptive")) == ("AdaptiveWarpedSkips", "PlaneDepth")
+        assert list(get("wo_conv0").skips.levels) == ["conv2", "conv3", "conv4"]
+        assert (skips("lean"), depth("lean")) == ("AdaptiveWarpedSkips", "PlaneDepth")
+        assert list(get("lean").skips.levels) == ["conv2", "conv3", "conv4"]
+        assert depth("oracle") == "OracleDepth" and list(cfg[f"skip_oracle_{data}"].loss) == ["recon", "vgg"]
+    # Exactly the rows that read ground truth are flagged, so none of them can be the best or the pick.
+    for r in study.rows:
+        if not r.reference:
+            assert r.oracle == cfg[r.name].model.depth._target_.endswith("OracleDepth"), r.name
+
+
+def _summary_row(name, l1, ms, kind="train", oracle=False):
+    row = {"row": name, "label": name, "kind": kind, "oracle": oracle, "l1": (l1, None),
+           sweep.PICK_COST: (ms, None)}
+    return row
+
+
+def test_pick_is_the_cheapest_row_within_one_percent_of_the_best_non_oracle_l1():
+    rows = [_summary_row("full", 0.1000, 10.0), _summary_row("skip", 0.1009, 7.0),
+            _summary_row("cheaper_but_worse", 0.1011, 5.0), _summary_row("oracle", 0.0500, 1.0, oracle=True),
+            _summary_row("copy", 0.0900, 0.1, kind="reference"), _summary_row("untimed", 0.1001, None),
+            _summary_row("unfinished", None, 0.5)]
+    best, pick = sweep.pick_cheapest(rows)
+    assert (best["row"], pick["row"]) == ("full", "skip")
+    best, pick = sweep.pick_cheapest(rows, tolerance=0.02)
+    assert pick["row"] == "cheaper_but_worse"
+    # Nothing cheaper within the margin: the best row is its own pick.
+    best, pick = sweep.pick_cheapest([_summary_row("full", 0.1, 10.0), _summary_row("plane", 0.2, 5.0)])
+    assert best is pick and pick["row"] == "full"
+    # Equal cost: the lower L1 wins; no eligible row: no pick.
+    assert sweep.pick_cheapest([_summary_row("a", 0.1005, 5.0), _summary_row("b", 0.1, 5.0)])[1]["row"] == "b"
+    assert sweep.pick_cheapest([_summary_row("oracle", 0.05, 1.0, oracle=True)]) == (None, None)
+
+
+COST_STUDY = {
+    "name": "cost", "seeds": [0], "size": 64, "steps": 10, "group_by": "data", "table": "cost",
+    "metrics": ["l1", "ssim"],
+    "rows": [
+        {"name": "full_chairs", "label": "Full", "experiment": "nvs_chairs"},
+        {"name": "lean_chairs", "label": "Lean", "experiment": "nvs_chairs", "overrides": ["model/depth=plane"]},
+        {"name": "oracle_chairs", "label": "Oracle", "experiment": "nvs_chairs", "oracle": True,
+         "overrides": ["model/depth=oracle"]},
+        {"name": "full_drive", "label": "Full", "experiment": "nvs_drive"},
+        {"name": "adaptive_drive", "label": "Adaptive", "experiment": "nvs_drive",
+         "overrides": ["model/skips=adaptive"]},
+        {"name": "copy_drive", "label": "Copy", "reference": "copy_source", "data": "drive"},
+    ],
+}
+COST_RESULTS = {  # row: (l1, eval forward ms, train step ms, warp_skipped per level or None)
+    "full_chairs": (0.100, 8.0, 300.0, None), "lean_chairs": (0.120, 4.0, 200.0, None),
+    "oracle_chairs": (0.050, 7.0, 250.0, None), "full_drive": (0.200, 8.0, 300.0, None),
+    "adaptive_drive": (0.201, 5.0, 280.0, {"conv0": 0.0, "conv2": 0.25, "conv3": 0.5, "conv4": 0.75}),
+    "copy_drive": (0.300, 0.5, None, None),
+}
+
+
+def test_cost_table_marks_the_pick_per_dataset(tmp_path):
+    path = tmp_path / "cost.yaml"
+    path.write_text(json.dumps(COST_STUDY))
+    study = sweep.load_study(path)
+    root = tmp_path / "runs"
+    for job in sweep.plan(study, root):
+        l1, fwd, step, skipped = COST_RESULTS[job.row.name]
+        sweep.prepare_job_dir(job, root)
+        test = {"l1": l1, "ssim": 0.8, "ssim_paper": 0.9, "psnr": 20.0, "lpips": 0.1, "n_pairs": 4}
+        if skipped:
+            test.update({f"warp_skipped_{lv}": v for lv, v in skipped.items()},
+                        warp_skipped=sum(skipped.values()) / len(skipped))
+        (job.dir / "metrics.json").write_text(json.dumps({
+            "data": job.data, "eval_ms_per_image": fwd + 20, "eval_forward_ms_per_image": fwd,
+            "train_step_ms": step, "device": "cpu: Fake CPU (2 threads)", "test": test}))
+    results = tmp_path / "results"
+    assert sweep.run([str(path), "--collect-only", str(root), "--results", str(results)]) == 0
+    md = (results / "cost.md").read_text()
+    chairs, drive = md.split("## chairs")[1].split("## drive")
+    line = {(grp, ln.split("|")[1].strip()): ln for grp, text in (("chairs", chairs), ("drive", drive))
+            for ln in text.splitlines() if ln.startswith("| ") and "---" not in ln}
+    # chairs: the plane row is 2x faster but 20% worse; the oracle is better and cheaper but never the pick.
+    assert "| ★ |" in line["chairs", "Full"] and "★" not in line["chairs", "Lean"] + line["chairs", "Oracle (oracle)"]
+    assert "| 1.00× | 300 | 0.1000 | 0.8000 | +0.0% |" in line["chairs", "Full"]
+    assert "| 2.00× |" in line["chairs", "Lean"] and "+20.0%" in line["chairs", "Lean"]
+    assert "-50.0%" in line["chairs", "Oracle (oracle)"]
+    assert "nothing can be skipped here" in chairs
+    # drive: the adaptive row is within 1% and cheaper: the pick, with its skipped warps per level.
+    assert "| ★ |" in line["drive", "Adaptive"] and "| 1.60× | 280 |" in line["drive", "Adaptive"]
+    assert "| 38% (0/25/50/75) |" in line["drive", "Adaptive"] and "| — |" in line["drive", "Full"]
+    assert "1.60× faster than Full at +0.5% L1" in drive
+    assert "★" not in line["drive", "Copy (reference)"]
+    rows = list(csv.DictReader(open(results / "cost.csv")))
+    adaptive = next(r for r in rows if r["row"] == "adaptive_drive")
+    assert float(adaptive["warp_skipped_conv3"]) == 0.5 and float(adaptive["train_step_ms"]) == 280
+
+
 def test_paper_numbers_match_the_paper_tables():
     def paper(stem, metric):
         return [r.paper.get(metric) for r in sweep.load_study(REPO / "sweeps" / f"{stem}.yaml").rows if r.paper]
@@ -106,6 +218,8 @@ def test_paper_numbers_match_the_paper_tables():
     ({"rows": [{"name": "a", "paper": {"acc": 1}}]}, "unknown metric"),
     ({"rows": [{"name": "a", "overrides": ["seed=3"]}]}, "set by the study"),
     ({"overrides": ["data.size=128"], "rows": [{"name": "a"}]}, "set by the study"),
+    ({"table": "fancy", "rows": [{"name": "a"}]}, "table must be one of"),
+    ({"rows": [{"name": "a", "oracle": "yes"}]}, "oracle must be true or false"),
 ])
 def test_malformed_study_is_one_clear_error(tmp_path, bad, message):
     path = tmp_path / "s.yaml"
