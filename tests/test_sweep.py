@@ -488,3 +488,24 @@ def test_failed_jobs_are_recorded_with_their_error_line(objects_root, tmp_path):
         assert failed.startswith("error:") and "does not exist" in failed
     md = (tmp_path / "results" / "bad.md").read_text()
     assert "**FAILED** s0, s1 failed: error:" in md
+
+
+@pytest.mark.slow
+def test_skip_study_rows_run_end_to_end_on_fixture_data(objects_root, tmp_path):
+    """The chairs rows of sweeps/skip.yaml, 2 steps each on the fixture data: every component trains, tests, and
+    lands in the cost table with one pick."""
+    raw = OmegaConf.to_container(OmegaConf.load(REPO / "sweeps" / "skip.yaml"))
+    raw["rows"] = [r for r in raw["rows"] if r["name"].endswith("_chairs")]
+    raw.update(steps=2, overrides=[f"data.root={objects_root}", "trainer.val_check_interval=2",
+                                   "data.loader.batch_size=2", "trainer.limit_val_batches=1",
+                                   "trainer.enable_progress_bar=false"])
+    study = tmp_path / "skip.yaml"
+    study.write_text(json.dumps(raw))
+    res = _sweep(str(study), "--runs", str(tmp_path / "runs"), "--results", str(tmp_path / "results"))
+    assert res.returncode == 0, res.stderr[-3000:]
+    rows = {r["row"]: r for r in csv.DictReader(open(tmp_path / "results" / "skip.csv"))}
+    assert len(rows) == 9 and all(r["status"] == "done" for r in rows.values())
+    assert rows["skip_adaptive_chairs"]["warp_skipped"] != "" and rows["skip_full_chairs"]["warp_skipped"] == ""
+    assert all(rows[r]["eval_forward_ms_per_image"] != "" for r in rows)
+    md = (tmp_path / "results" / "skip.md").read_text()
+    assert md.count("| ★ |") == 1 and "**Pick**:" in md and "(oracle)" in md
