@@ -15,11 +15,12 @@ from omegaconf import OmegaConf
 from PIL import Image
 
 from nvs.build import build_module
+from nvs.data.datamodule import build_datamodule
 from nvs.data.kitti import ScenesFormat
 from nvs.data.shapenet import ObjectsFormat
 from nvs.errors import UserError
 from nvs.models.net import Extras
-from nvs.viewer.controls import ObjectControls, SceneControls
+from nvs.viewer.controls import ObjectControls, SceneControls, build_controls
 from nvs.viewer.images import decode_upload
 from nvs.viewer.load import ViewerProcess, measure
 from nvs.viewer.server import check_address
@@ -89,6 +90,18 @@ def test_scene_ranges_come_from_the_training_pairs_and_forward_moves_the_camera(
     assert torch.allclose(point, torch.tensor([0.0, 0.0, 0.38, 1.0]))  # 1 m closer after moving 1 m forward
     right = controls.pose({"forward": 0.0, "sideways": ranges["sideways"][0]}, {}) @ torch.tensor([0.0, 0, 0.4, 1])
     assert right[0] > 0  # the camera moved left: the point is now to its right
+
+
+def test_each_data_format_gets_its_controls(objects_root, scenes_root):
+    camera = {"fx": 480.0, "fy": 480.0, "cx": 128.0, "cy": 128.0, "size": 256, "pivot": [0.0, 0.0, 2.0]}
+    objects = build_datamodule("objects", str(objects_root), 64, camera, {}, category="chair", max_delta_azimuth=20)
+    assert isinstance(build_controls("objects", objects), ObjectControls)
+    assert build_controls("objects", objects).axes[0].max == 20.0
+    scenes = build_datamodule("scenes", str(scenes_root), 64, {**camera, "pivot": [0.0, 0.0, 0.0]}, {},
+                              translation_scale=0.02)
+    assert [ax.name for ax in build_controls("scenes", scenes).axes] == ["sideways", "forward"]
+    with pytest.raises(UserError, match="controls for 'objects' and 'scenes'"):
+        build_controls("meshes", scenes)
 
 
 # -- uploads -------------------------------------------------------------------------------------------------------

@@ -6,7 +6,7 @@ with the pose sweeping the trained range, after warm-up requests. Each latency i
 pose step, PNG encoding, JSON, reading the body). Reports the median (views/s = 1000 / median ms), p10/p90, the
 server's own model and server times, and the latency of a source switch (encoder + pose step); writes a JSON report
 (command, git SHA, date, device, load average before and after) to ``load.out`` (default
-``results/viewer/load_<size>.json``, ``load_<size>_<n>threads.json`` with ``threads=<n>``).
+``results/viewer/load_<size>.json``, ``load_<size>_threads<n>.json`` with ``threads=<n>``).
 """
 
 from __future__ import annotations
@@ -148,7 +148,7 @@ def main(cfg: DictConfig) -> None:
         "device": device_name(), "threads": cfg.threads,
         "loadavg_1min_before": load_before[0], "loadavg_1min_after": os.getloadavg()[0], **result,
     }
-    threads = f"_{cfg.threads}threads" if cfg.threads else ""
+    threads = f"_threads{cfg.threads}" if cfg.threads else ""
     out = Path(cfg.load.out or f"results/viewer/load_{result['image_size']}{threads}.json")
     write_json(out, report)
     print(f"{result['image_size']}²: {result['views_per_s']:.1f} views/s (median {result['median_ms']:.1f} ms end to "
