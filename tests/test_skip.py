@@ -66,7 +66,8 @@ def test_displacement_bound_is_never_below_the_true_maximum(size, f_rel, aspect,
     R = torch.from_numpy(Rotation.from_rotvec(rotvec).as_matrix())
     T = pose_matrix(R[None], torch.tensor(t, dtype=F64)[None] * t_scale)
     d_hi = d_lo * d_ratio
-    bound = float(max_warp_displacement(K[None], T, torch.tensor([d_lo]), torch.tensor([d_hi]), (H, W))[0])
+    bound = float(max_warp_displacement(K[None], T, torch.tensor([d_lo], dtype=F64), torch.tensor([d_hi], dtype=F64),
+                                       (H, W))[0])
     true_max, all_in_front = _true_max_displacement(K[None], T, d_lo, d_hi, H, W)
     assert bound >= true_max - 1e-9 * max(1.0, true_max), (bound, true_max)
     if not all_in_front:
