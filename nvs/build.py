@@ -48,8 +48,9 @@ def build_module(cfg: DictConfig) -> NVSModule:
     net = _instantiate(net_cfg, "model", _convert_="all")
     losses = {name: _instantiate(node, f"loss.{name}") for name, node in (cfg.get("loss") or {}).items()}
     optimizer = _instantiate(cfg.optim, "optim")
+    scheduler = _instantiate(cfg.scheduler, "scheduler") if cfg.get("scheduler") else None
     module = NVSModule(net, losses, optimizer, nonfinite=cfg.nonfinite, channels_last=bool(cfg.channels_last),
-                       model_name=str(cfg.model.get("name", "nvs")))
+                       model_name=str(cfg.model.get("name", "nvs")), scheduler=scheduler)
     module.run_config = OmegaConf.to_container(cfg, resolve=True)
     return module
 

@@ -34,13 +34,14 @@ class NVSModule(L.LightningModule):
 
     def __init__(self, net: nn.Module, losses: dict[str, nn.Module], optimizer: Callable,
                  nonfinite: str = "stop", channels_last: bool = False, val_metrics=("l1", "ssim_paper"),
-                 model_name: str = "nvs"):
+                 model_name: str = "nvs", scheduler: Callable | None = None):
         super().__init__()
         if nonfinite not in ("stop", "skip"):
             raise UserError(f"nonfinite={nonfinite!r}: expected 'stop' or 'skip'")
         self.net = net
         self.losses = nn.ModuleDict(losses)
         self.optimizer_factory = optimizer
+        self.scheduler_factory = scheduler
         self.nonfinite = nonfinite
         self.channels_last = channels_last
         self.val_metrics = tuple(val_metrics)
@@ -160,4 +161,9 @@ class NVSModule(L.LightningModule):
 
     def configure_optimizers(self):
         params = [p for p in self.parameters() if p.requires_grad]
-        return self.optimizer_factory(params)
+        optimizer = self.optimizer_factory(params)
+        if self.scheduler_factory is None:
+            return optimizer
+        # Schedules are stepped per optimiser step, so their horizon is trainer.max_steps.
+        return {"optimizer": optimizer,
+                "lr_scheduler": {"scheduler": self.scheduler_factory(optimizer), "interval": "step"}}

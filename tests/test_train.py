@@ -28,7 +28,7 @@ def test_every_experiment_composes_and_builds(experiment, tmp_path):
     assert sum(p.numel() for p in module.net.parameters()) >= 0
 
 
-@pytest.mark.parametrize("group", ["data", "model/skips", "model/depth", "optim", "trainer", "debug"])
+@pytest.mark.parametrize("group", ["data", "model/skips", "model/depth", "optim", "scheduler", "trainer", "debug"])
 def test_every_group_option_composes(group, tmp_path):
     for option in _options(group):
         cfg = compose_train([f"{group}={option}", f"paths.root_dir={tmp_path}"])
@@ -135,3 +135,23 @@ def test_evaluate_checkpoint_and_reference_models(objects_root, tmp_path):
     bad.write_bytes(b"not a checkpoint")
     res = _evaluate(tmp_path, f"ckpt_path={bad}", f"out_dir={out}/y")
     assert res.returncode == 2 and "bad.ckpt: not a readable checkpoint" in res.stderr
+
+
+def test_onecycle_schedule_warms_up_then_anneals_over_max_steps(tmp_path):
+    from nvs.build import build_module
+
+    cfg = compose_train(["scheduler=onecycle", "trainer.max_steps=20", "loss=[recon]", "data.size=64",
+                         f"paths.root_dir={tmp_path}"])
+    cfg.paths.output_dir = str(tmp_path)
+    OmegaConf.resolve(cfg)
+    conf = build_module(cfg).configure_optimizers()
+    opt, sched = conf["optimizer"], conf["lr_scheduler"]["scheduler"]
+    assert conf["lr_scheduler"]["interval"] == "step"
+    lrs = []
+    for _ in range(20):
+        lrs.append(opt.param_groups[0]["lr"])
+        opt.step()
+        sched.step()
+    peak = lrs.index(max(lrs))
+    assert 0 < peak < 5 and max(lrs) == pytest.approx(3e-4) and lrs[-1] < 0.05 * max(lrs)
+    assert opt.param_groups[0]["betas"][0] == 0.9
