@@ -210,7 +210,38 @@ def _markdown(report: dict) -> str:
                 f" | {r.get('eval_speedup', float('nan')):.2f}× | {r['throughput_images_per_s']:.1f}"
                 f" | {t['peak_mem_mb'] or 0:.0f} | {r.get('train_gflop_per_sample', float('nan')):.1f}"
                 f" | {ach or float('nan'):.0f} | {100 * ach / peak if (ach and peak) else float('nan'):.0f}% |")
+    lines += accuracy_section(Path(report["header"].get("precision_csv") or "results/precision.csv"))
     return "\n".join(lines) + "\n"
+
+
+def accuracy_section(csv_path: Path, tolerance: float = 0.02) -> list[str]:
+    """Markdown lines comparing test L1 of the fp32 and fast rows of the precision study (sweeps/precision.yaml).
+
+    The rows are matched by name (``precision_fp32_*`` against ``precision_fast_*``); without the study's CSV the
+    section says how to produce it.
+    """
+    head = ["", "## Accuracy of the fast mode", ""]
+    if not csv_path.is_file():
+        return head + [f"No `{csv_path}` yet: run `python -m nvs.sweep sweeps/precision.yaml`."]
+    import pandas as pd
+
+    df = pd.read_csv(csv_path)
+    done = df[df["status"] == "done"]
+    fp32 = done[done["row"].str.startswith("precision_fp32")]
+    fast = done[done["row"].str.startswith("precision_fast")]
+    if fp32.empty or fast.empty:
+        return head + [f"`{csv_path}` has no finished fp32 and fast rows yet."]
+    l1_fp32, l1_fast = float(fp32["l1"].mean()), float(fast["l1"].mean())
+    rel = (l1_fast - l1_fp32) / l1_fp32
+    verdict = "within" if abs(rel) <= tolerance else "NOT within"
+    steps = ", ".join(sorted({str(int(x)) for x in done["steps"].dropna()}))
+    return head + [
+        f"Same chair schedule and seeds ({len(fp32)} run(s) each, {steps} steps, from `{csv_path}`):", "",
+        "| mode | test L1 | SSIM (paper) | train wall s |", "|---|---:|---:|---:|",
+        f"| fp32 NCHW | {l1_fp32:.4f} | {fp32['ssim_paper'].mean():.4f} | {fp32['train_wall_s'].mean():.0f} |",
+        f"| bf16 + channels_last | {l1_fast:.4f} | {fast['ssim_paper'].mean():.4f} | "
+        f"{fast['train_wall_s'].mean():.0f} |", "",
+        f"Relative L1 difference {100 * rel:+.1f}%: {verdict} the {100 * tolerance:.0f}% goal."]
 
 
 def _slug(name: str) -> str:
