@@ -31,6 +31,7 @@ import os
 import re
 import shlex
 import shutil
+import signal
 import subprocess
 import sys
 import threading
@@ -941,7 +942,13 @@ def run(argv: list[str] | None = None) -> int:
     return 0 if counts.get("done", 0) == len(jobs) else 1
 
 
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
 def main(argv: list[str] | None = None) -> None:
+    # `kill <sweep pid>` (SIGTERM) stops the running job too, as Ctrl-C does: no orphan keeps writing its run dir.
+    signal.signal(signal.SIGTERM, _interrupt)
     try:
         sys.exit(run(argv))
     except UserError as err:

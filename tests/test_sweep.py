@@ -509,3 +509,36 @@ def test_skip_study_rows_run_end_to_end_on_fixture_data(objects_root, tmp_path):
     assert all(rows[r]["eval_forward_ms_per_image"] != "" for r in rows)
     md = (tmp_path / "results" / "skip.md").read_text()
     assert md.count("| ★ |") == 1 and "**Pick**:" in md and "(oracle)" in md
+
+
+def test_sigterm_to_the_sweep_stops_its_running_job(tmp_path):
+    """`kill <sweep pid>` must not leave the job it launched running (and writing its run directory) as an orphan."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    script = tmp_path / "runner.py"
+    pid_file = tmp_path / "child.pid"
+    script.write_text(
+        "import signal, sys\n"
+        "from nvs import sweep\n"
+        "signal.signal(signal.SIGTERM, sweep._interrupt)\n"
+        f"child = ['{sys.executable}', '-c', 'import os, time; open(r\"{pid_file}\", \"w\").write(str(os.getpid())); "
+        "time.sleep(60)']\n"
+        "try:\n"
+        "    sweep._run_streaming(child, dict(__import__('os').environ))\n"
+        "except KeyboardInterrupt:\n"
+        "    sys.exit(130)\n")
+    proc = subprocess.Popen([sys.executable, str(script)], cwd=REPO)
+    for _ in range(200):
+        if pid_file.exists() and pid_file.read_text():
+            break
+        time.sleep(0.05)
+    child = int(pid_file.read_text())
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=20) == 130
+    time.sleep(0.2)
+    with pytest.raises(ProcessLookupError):
+        os.kill(child, 0)
