@@ -225,3 +225,25 @@ def test_unsupported_loss_through_train_entry_point_is_one_line(objects_root, tm
     res = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=600)
     assert res.returncode == 2, res.stderr[-3000:]
     assert "model 'tatarchenko' cannot provide 'warped_src'" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_ground_truth_warp_treats_missing_depth_as_the_data_says():
+    """Objects: no depth = background, filled white. Scenes: no depth = sky, warped as far away (kept, not white)."""
+    from nvs.models.reference import GroundTruthWarp
+
+    g = torch.Generator().manual_seed(0)
+    src = torch.rand(1, 3, 16, 16, generator=g) * 0.5
+    depth = torch.full((1, 1, 16, 16), 2.0)
+    depth[..., :6, :] = 0.0  # top rows: no ground truth
+    K = torch.tensor([[[20.0, 0.0, 7.5], [0.0, 20.0, 7.5], [0.0, 0.0, 1.0]]])
+    batch = {"src": src, "depth_tgt": depth, "K": K, "T_tgt_src": torch.eye(4)[None]}
+    objects = GroundTruthWarp()(batch)["rgb"]
+    assert torch.all(objects[..., :6, :] == 1.0)
+    torch.testing.assert_close(objects[..., 6:, :], src[..., 6:, :], atol=1e-5, rtol=0)
+    scenes = GroundTruthWarp(missing_depth=100.0)(batch)["rgb"]
+    torch.testing.assert_close(scenes, src, atol=1e-5, rtol=0)
+    # a small sideways step: near pixels shift by f*t/z = 20*0.1/2 = 1 px, the far sky by 0.02 px
+    T = torch.eye(4)[None]
+    T[0, 0, 3] = 0.1
+    moved = GroundTruthWarp(missing_depth=100.0)({**batch, "T_tgt_src": T})["rgb"]
+    assert (moved[..., :6, 2:-2] - src[..., :6, 2:-2]).abs().max() < 0.02

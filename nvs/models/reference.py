@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import torch
 import torch.nn as nn
 
 from nvs.geometry import inverse_warp
@@ -20,19 +21,27 @@ class CopySource(nn.Module):
 
 
 class GroundTruthWarp(nn.Module):
-    """Warps the source with the ground-truth target depth; pixels with no correspondence stay white (background).
+    """Warps the source with the ground-truth target depth: the ceiling a pure depth-based warping method could reach
+    on the rendered data (needs ``depth_tgt``).
 
-    The ceiling a pure depth-based warping method could reach on the rendered data (needs ``depth_tgt``).
+    ``missing_depth`` (the data config's): None for objects, whose pixels without depth are background with no
+    surface, so they and pixels with no correspondence are filled white. A depth for scenes, whose pixels without
+    depth are sky: they are warped as if that far away, and pixels with no correspondence keep the source pixel.
     """
 
-    def __init__(self, image_size: int | None = None, fill: float = 1.0):
+    def __init__(self, image_size: int | None = None, fill: float = 1.0, missing_depth: float | None = None):
         super().__init__()
         self.fill = fill
+        self.missing_depth = missing_depth
 
     def forward(self, batch: Batch, needs: frozenset[str] = frozenset()) -> Outputs:
         if "depth_tgt" not in batch:
             raise KeyError("GroundTruthWarp needs ground-truth target depth (data.loader.with_depth=true, depth/ files)")
         depth = batch["depth_tgt"]
+        fill = self.fill
+        if self.missing_depth is not None:
+            depth = torch.where(depth > 0, depth, torch.full_like(depth, float(self.missing_depth)))
+            fill = batch["src"]
         warped, valid = inverse_warp(batch["src"], depth, batch["K"], batch["T_tgt_src"])
-        rgb = warped * valid + self.fill * (1 - valid)
+        rgb = warped * valid + fill * (1 - valid)
         return {"rgb": rgb, "rgb_scales": [rgb * 2 - 1], "depth": depth}
