@@ -240,10 +240,10 @@ def test_ground_truth_warp_treats_missing_depth_as_the_data_says():
     objects = GroundTruthWarp()(batch)["rgb"]
     assert torch.all(objects[..., :6, :] == 1.0)
     torch.testing.assert_close(objects[..., 6:, :], src[..., 6:, :], atol=1e-5, rtol=0)
-    scenes = GroundTruthWarp(missing_depth=100.0)(batch)["rgb"]
+    scenes = GroundTruthWarp(data_format="scenes", sky_depth=100.0)(batch)["rgb"]
     torch.testing.assert_close(scenes, src, atol=1e-5, rtol=0)
     # a small sideways step: near pixels shift by f*t/z = 20*0.1/2 = 1 px, the far sky by 0.02 px
     T = torch.eye(4)[None]
     T[0, 0, 3] = 0.1
-    moved = GroundTruthWarp(missing_depth=100.0)({**batch, "T_tgt_src": T})["rgb"]
+    moved = GroundTruthWarp(data_format="scenes", sky_depth=100.0)({**batch, "T_tgt_src": T})["rgb"]
     assert (moved[..., :6, 2:-2] - src[..., :6, 2:-2]).abs().max() < 0.02

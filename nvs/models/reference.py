@@ -24,15 +24,18 @@ class GroundTruthWarp(nn.Module):
     """Warps the source with the ground-truth target depth: the ceiling a pure depth-based warping method could reach
     on the rendered data (needs ``depth_tgt``).
 
-    ``missing_depth`` (the data config's): None for objects, whose pixels without depth are background with no
-    surface, so they and pixels with no correspondence are filled white. A depth for scenes, whose pixels without
-    depth are sky: they are warped as if that far away, and pixels with no correspondence keep the source pixel.
+    Pixels without ground-truth depth: for ``data_format='objects'`` they are background with no surface, so they
+    and pixels with no correspondence are filled white. For ``'scenes'`` they are sky: warped as if ``sky_depth``
+    away, and pixels with no correspondence keep the source pixel.
     """
 
-    def __init__(self, image_size: int | None = None, fill: float = 1.0, missing_depth: float | None = None):
+    def __init__(self, image_size: int | None = None, fill: float = 1.0, data_format: str = "objects",
+                 sky_depth: float = 100.0):
         super().__init__()
+        if data_format not in ("objects", "scenes"):
+            raise ValueError(f"data_format={data_format!r}: expected 'objects' or 'scenes'")
         self.fill = fill
-        self.missing_depth = missing_depth
+        self.missing_depth = sky_depth if data_format == "scenes" else None
 
     def forward(self, batch: Batch, needs: frozenset[str] = frozenset()) -> Outputs:
         if "depth_tgt" not in batch:
