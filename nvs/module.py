@@ -74,18 +74,13 @@ class NVSModule(L.LightningModule):
         out = self(batch, self.train_needs)
         total = 0.0
         bs = batch["src"].shape[0]
-        constant = []
+        values = {}
         for name, term in self.losses.items():
-            value = term(out, batch)
+            values[name] = value = term(out, batch)
             self.log(f"train/loss/{name}", value.detach(), batch_size=bs)
             total = total + term.weight * value
-            if torch.is_grad_enabled() and not value.requires_grad:
-                constant.append(name)
-        if constant and not self._constant_terms_warned:
-            self._constant_terms_warned = True
-            rank_zero_warn(f"loss term(s) {', '.join(constant)} depend on no trainable parameter (e.g. "
-                           "model/depth=oracle makes the depth terms constants): they are logged but train nothing; "
-                           "drop them from loss=[...] to save their compute")
+        if not self._constant_terms_warned:  # checked on the first step only
+            self._warn_constant_terms(values)
         self.log("train/loss/total", total.detach(), prog_bar=True, batch_size=bs)
         if not torch.isfinite(total):
             if self.nonfinite == "skip":
@@ -96,6 +91,14 @@ class NVSModule(L.LightningModule):
                 f"({', '.join(f'{n}' for n in self.losses)}); the last good checkpoint is kept. "
                 "Set module.nonfinite=skip to drop such steps instead.")
         return total
+
+    def _warn_constant_terms(self, values: dict[str, torch.Tensor]) -> None:
+        self._constant_terms_warned = True
+        constant = [name for name, value in values.items() if torch.is_grad_enabled() and not value.requires_grad]
+        if constant:
+            rank_zero_warn(f"loss term(s) {', '.join(constant)} depend on no trainable parameter (e.g. "
+                           "model/depth=oracle makes the depth terms constants): they are logged but train nothing; "
+                           "drop them from loss=[...] to save their compute")
 
     def validation_step(self, batch: Batch, batch_idx: int):
         out = self(batch)
