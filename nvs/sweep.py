@@ -765,7 +765,40 @@ def _metrics_tables(groups: dict[str | None, list[dict]], present: list[str], pa
             cells.append(_status(r))
             lines.append("| " + " | ".join(cells) + " |")
         lines.append("")
+        lines += orderings(grows, paper_metrics)
     return lines
+
+
+def orderings(rows: list[dict], metrics: list[str]) -> list[str]:
+    """Markdown lines comparing the paper's ranking of a table's rows with ours, per metric.
+
+    Only rows with both a paper number and a measured mean take part. A pair of rows agrees when ours orders it the
+    way the paper does (pairs the paper ties are left out); the lines list both rankings (best first), the number of
+    agreeing pairs and the pairs that disagree.
+    """
+    lines = []
+    for m in metrics:
+        ranked = [r for r in rows if m in r["paper"] and r[m][0] is not None]
+        if len(ranked) < 2:
+            continue
+        sign = 1.0 if METRIC_FORMAT[m][1] == "↓" else -1.0
+        paper = sorted(ranked, key=lambda r: sign * r["paper"][m])
+        ours = sorted(ranked, key=lambda r: sign * r[m][0])
+        agree, total, swapped = 0, 0, []
+        for i, a in enumerate(paper):
+            for b in paper[i + 1:]:
+                if a["paper"][m] == b["paper"][m]:
+                    continue
+                total += 1
+                if sign * (a[m][0] - b[m][0]) < 0:
+                    agree += 1
+                else:
+                    swapped.append(f"{a['row']} / {b['row']}")
+        title = "SSIM (paper)" if m == "ssim_paper" else METRIC_FORMAT[m][0]
+        line = (f"- **{title}** (best first) paper: {' > '.join(r['row'] for r in paper)}; "
+                f"ours: {' > '.join(r['row'] for r in ours)}; {agree}/{total} pairs in the paper's order")
+        lines.append(line + (f" (not: {', '.join(swapped)})" if swapped else ""))
+    return ["Orderings against the paper:", "", *lines, ""] if lines else []
 
 
 PICK_COST = "eval_forward_ms_per_image"

@@ -542,3 +542,19 @@ def test_sigterm_to_the_sweep_stops_its_running_job(tmp_path):
     time.sleep(0.2)
     with pytest.raises(ProcessLookupError):
         os.kill(child, 0)
+
+
+def test_orderings_count_the_pairs_ranked_as_in_the_paper():
+    def row(name, l1, paper_l1, ssim=None, paper_ssim=None):
+        paper = {"l1": paper_l1} | ({"ssim_paper": paper_ssim} if paper_ssim is not None else {})
+        return {"row": name, "l1": (l1, None), "ssim_paper": (ssim, None), "paper": paper}
+
+    rows = [row("a", 0.30, 0.10, 0.5, 0.80), row("b", 0.20, 0.08, 0.7, 0.90), row("c", 0.25, 0.06, 0.6, 0.95),
+            {"row": "copy", "l1": (0.5, None), "ssim_paper": (0.1, None), "paper": {}}]
+    lines = sweep.orderings(rows, ["l1", "ssim_paper"])
+    l1_line = next(line for line in lines if line.startswith("- **L1**"))
+    # paper (best first) c, b, a; ours b, c, a: pairs (c,b) swapped, (c,a) and (b,a) kept; the reference is left out
+    assert "paper: c > b > a; ours: b > c > a; 2/3 pairs in the paper's order (not: c / b)" in l1_line
+    ssim_line = next(line for line in lines if line.startswith("- **SSIM (paper)**"))
+    assert "ours: b > c > a; 2/3 pairs" in ssim_line
+    assert sweep.orderings(rows[:1], ["l1"]) == []
