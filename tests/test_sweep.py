@@ -262,7 +262,7 @@ def _fake_result(job: sweep.Job, root: Path, l1: float, record: bool = True) -> 
     (job.dir / "metrics.json").write_text(json.dumps({
         "model": "nvs", "data": "chairs", "image_size": 64, "seed": job.seed, "steps": 10, "train_wall_s": 100.0 + l1,
         "train_samples_per_s": 1.0, "params": 1234567, "device": "cpu: Fake CPU (2 threads)", "precision": "32-true",
-        "git_sha": "abc123", "eval_ms_per_image": 5.0, "test": test}))
+        "git_sha": "abc123", "eval_ms_per_image": 5.0, "eval_forward_ms_per_image": 2.0 + l1, "test": test}))
 
 
 def _fake_failure(job: sweep.Job, root: Path, line: str) -> None:
@@ -417,6 +417,31 @@ def test_pareto_report_from_sweep_csv(fabricated, tmp_path):
     assert "## chairs" in text and "copy" not in text.split("## chairs")[1]  # reference rows are not methods
     full = next(ln for ln in text.splitlines() if ln.startswith("| Full model"))
     assert "| 0.1100 |" in full and full.count("★") == 4  # lowest L1 at every cost in this fabricated set
+
+
+def test_pareto_never_puts_two_scales_on_one_front(fabricated, tmp_path):
+    study, root = fabricated
+    results = tmp_path / "results"
+    sweep.run([str(study.path), "--collect-only", str(root), "--results", str(results)])
+    rows = list(csv.DictReader(open(results / "fab.csv")))
+    other = tmp_path / "other.csv"
+    with open(other, "w", newline="") as f:  # the same jobs as if trained 10x longer elsewhere
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        for r in rows:
+            w.writerow(r | {"steps": "100", "run_dir": r["run_dir"] + "_long", "train_wall_s": "1.0"})
+    agg = pareto.load_rows([results / "fab.csv", other])
+    assert set(agg["data"]) == {"chairs @ 64²/10 steps", "chairs @ 64²/100 steps"}
+    # each scale has its own front: the fast long run does not knock the short runs off theirs
+    short = agg[agg["data"] == "chairs @ 64²/10 steps"]
+    assert short["front_l1_train_wall_s"].any()
+
+
+def test_pareto_reads_the_paper_studies_by_default(tmp_path):
+    header = ",".join(sweep.CSV_COLUMNS) + "\n"
+    for name in ("ablation", "skip", "comparison_drive"):
+        (tmp_path / f"{name}.csv").write_text(header)
+    assert [p.name for p in pareto.default_csvs(tmp_path)] == ["ablation.csv", "comparison_drive.csv"]
 
 
 def test_unproject_inverts_the_projection():
