@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import io
 import sys
+import textwrap
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -173,7 +174,7 @@ def qualitative_grid(preds: list[tuple[Run, dict]]) -> bytes:
             ax.set_xticks([])
             ax.set_yticks([])
             if i == 0:
-                ax.set_title(title, fontsize=7)
+                ax.set_title(textwrap.fill(title, 20), fontsize=7)  # long labels wrap instead of overlapping
     fig.tight_layout()
     return _png(fig)
 

@@ -68,6 +68,8 @@ COSTS = ("eval_ms_per_image", "eval_forward_ms_per_image", "train_step_ms")
 # the cheapest row within PICK_L1_TOLERANCE of the best non-oracle L1 marked).
 TABLES = ("metrics", "cost")
 PICK_L1_TOLERANCE = 0.01
+# Orderings: two of our means closer than this fraction of the larger are a tie (one seed gives no spread).
+ORDER_TIE = 0.005
 JOB_RECORD = "sweep_job.json"
 FAILED = "failed.txt"
 STDERR = "stderr.log"
@@ -773,8 +775,9 @@ def orderings(rows: list[dict], metrics: list[str]) -> list[str]:
     """Markdown lines comparing the paper's ranking of a table's rows with ours, per metric.
 
     Only rows with both a paper number and a measured mean take part. A pair of rows agrees when ours orders it the
-    way the paper does (pairs the paper ties are left out); the lines list both rankings (best first), the number of
-    agreeing pairs and the pairs that disagree.
+    way the paper does (pairs the paper ties are left out). Ours is a tie when the two means differ by less than
+    ORDER_TIE of the larger one or, with seeds, less than the sum of their standard deviations: such a pair is
+    counted neither way. The lines list both rankings (best first), the agreeing pairs, the ties and the swaps.
     """
     lines = []
     for m in metrics:
@@ -784,20 +787,24 @@ def orderings(rows: list[dict], metrics: list[str]) -> list[str]:
         sign = 1.0 if METRIC_FORMAT[m][1] == "↓" else -1.0
         paper = sorted(ranked, key=lambda r: sign * r["paper"][m])
         ours = sorted(ranked, key=lambda r: sign * r[m][0])
-        agree, total, swapped = 0, 0, []
+        agree, total, swapped, tied = 0, 0, [], []
         for i, a in enumerate(paper):
             for b in paper[i + 1:]:
                 if a["paper"][m] == b["paper"][m]:
                     continue
                 total += 1
-                if sign * (a[m][0] - b[m][0]) < 0:
+                (ma, sa), (mb, sb) = a[m], b[m]
+                if abs(ma - mb) < max(ORDER_TIE * max(abs(ma), abs(mb)), (sa or 0.0) + (sb or 0.0)):
+                    tied.append(f"{a['row']} / {b['row']}")
+                elif sign * (ma - mb) < 0:
                     agree += 1
                 else:
                     swapped.append(f"{a['row']} / {b['row']}")
         title = "SSIM (paper)" if m == "ssim_paper" else METRIC_FORMAT[m][0]
         line = (f"- **{title}** (best first) paper: {' > '.join(r['row'] for r in paper)}; "
                 f"ours: {' > '.join(r['row'] for r in ours)}; {agree}/{total} pairs in the paper's order")
-        lines.append(line + (f" (not: {', '.join(swapped)})" if swapped else ""))
+        line += f", {len(tied)} tied (ours: {', '.join(tied)})" if tied else ""
+        lines.append(line + (f"; swapped: {', '.join(swapped)}" if swapped else ""))
     return ["Orderings against the paper:", "", *lines, ""] if lines else []
 
 

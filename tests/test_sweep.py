@@ -579,7 +579,14 @@ def test_orderings_count_the_pairs_ranked_as_in_the_paper():
     lines = sweep.orderings(rows, ["l1", "ssim_paper"])
     l1_line = next(line for line in lines if line.startswith("- **L1**"))
     # paper (best first) c, b, a; ours b, c, a: pairs (c,b) swapped, (c,a) and (b,a) kept; the reference is left out
-    assert "paper: c > b > a; ours: b > c > a; 2/3 pairs in the paper's order (not: c / b)" in l1_line
+    assert "paper: c > b > a; ours: b > c > a; 2/3 pairs in the paper's order; swapped: c / b" in l1_line
     ssim_line = next(line for line in lines if line.startswith("- **SSIM (paper)**"))
     assert "ours: b > c > a; 2/3 pairs" in ssim_line
     assert sweep.orderings(rows[:1], ["l1"]) == []
+    # within 0.5% of each other, or within the seeds' spread: neither agreeing nor swapped
+    close = [row("a", 0.2000, 0.10), row("b", 0.2009, 0.08)]
+    assert "0/1 pairs in the paper's order, 1 tied (ours: b / a)" in sweep.orderings(close, ["l1"])[2]
+    spread = [row("a", 0.20, 0.10) | {"l1": (0.20, 0.02)}, row("b", 0.23, 0.08) | {"l1": (0.23, 0.02)}]
+    assert "1 tied" in sweep.orderings(spread, ["l1"])[2]
+    apart = [row("a", 0.20, 0.10) | {"l1": (0.20, 0.01)}, row("b", 0.23, 0.08) | {"l1": (0.23, 0.01)}]
+    assert "swapped: b / a" in sweep.orderings(apart, ["l1"])[2]
