@@ -155,3 +155,25 @@ def test_onecycle_schedule_warms_up_then_anneals_over_max_steps(tmp_path):
     peak = lrs.index(max(lrs))
     assert 0 < peak < 5 and max(lrs) == pytest.approx(3e-4) and lrs[-1] < 0.05 * max(lrs)
     assert opt.param_groups[0]["betas"][0] == 0.9
+
+
+def test_conv0_norm_option_keeps_colour_levels_in_the_full_resolution_skip():
+    from nvs.models.encoder import Encoder
+
+    paper, plain = Encoder(64), Encoder(64, conv0_norm="none")
+    assert any(isinstance(m, torch.nn.InstanceNorm2d) for m in paper.conv0.modules())
+    assert not any(isinstance(m, torch.nn.InstanceNorm2d) for m in plain.conv0.modules())
+    assert any(isinstance(m, torch.nn.InstanceNorm2d) for m in plain.conv2.modules())  # only conv0 changes
+    plain.load_state_dict(paper.state_dict())  # no norm parameters either way: weights are interchangeable
+    x = torch.rand(1, 3, 64, 64) * 2 - 1
+    # instance-normalised features do not see a global brightness shift; the plain conv0 does
+    with torch.no_grad():
+        assert (paper.conv0(x) - paper.conv0(x * 0.5 + 0.3)).abs().max() < 1e-2
+        shift = (plain.conv0(x) - plain.conv0(x * 0.5 + 0.3)).abs().mean()
+        assert shift > 1e-2
+
+
+def test_demo_trains_the_full_model_with_the_plain_conv0(tmp_path):
+    cfg = compose_train(["experiment=demo"])
+    assert cfg.model.conv0_norm == "none" and cfg.model.name == "nvs"
+    assert list(cfg.loss) == ["recon", "vgg", "depth_consistency", "edge_smooth", "warp"]

@@ -52,10 +52,10 @@ class NVSNet(nn.Module):
     """
 
     def __init__(self, image_size: int, skips: nn.Module, depth: Callable[..., nn.Module], n_points: int = 200,
-                 decoder_norm: str = "batch"):
+                 decoder_norm: str = "batch", conv0_norm: str = "instance"):
         super().__init__()
         self.image_size = image_size
-        self.encoder = Encoder(image_size, n_points)
+        self.encoder = Encoder(image_size, n_points, conv0_norm=conv0_norm)
         self.depth = depth(image_size=image_size, n_points=n_points)
         self.skips = skips
         self.pixel_decoder = PixelDecoder(image_size, n_points, skips.levels, norm=decoder_norm)
