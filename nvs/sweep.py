@@ -800,8 +800,7 @@ def orderings(rows: list[dict], metrics: list[str]) -> list[str]:
                     agree += 1
                 else:
                     swapped.append(f"{a['row']} / {b['row']}")
-        title = "SSIM (paper)" if m == "ssim_paper" else METRIC_FORMAT[m][0]
-        line = (f"- **{title}** (best first) paper: {' > '.join(r['row'] for r in paper)}; "
+        line = (f"- **{METRIC_FORMAT[m][0]}** (best first) paper: {' > '.join(r['row'] for r in paper)}; "
                 f"ours: {' > '.join(r['row'] for r in ours)}; {agree}/{total} pairs in the paper's order")
         line += f", {len(tied)} tied (ours: {', '.join(tied)})" if tied else ""
         lines.append(line + (f"; swapped: {', '.join(swapped)}" if swapped else ""))
