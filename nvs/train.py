@@ -18,6 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 from nvs.build import build_data, build_module, device_name, git_sha, parameter_count
 from nvs.config_check import check_cli_overrides
 from nvs.errors import UserError, exits_cleanly
+from nvs.quiet import silence_known_noise
 from nvs.run_files import summary_line, write_metrics, write_per_image
 
 
@@ -85,11 +86,14 @@ def _complete(path: Path) -> str:
 
 def run(cfg: DictConfig, out_dir: Path) -> dict:
     """Train and test one configuration; writes metrics.json and test_per_image.csv into ``out_dir``."""
+    silence_known_noise()
     L.seed_everything(int(cfg.seed), workers=True)
     torch.set_float32_matmul_precision("high")
     datamodule = build_data(cfg)
     module = build_module(cfg)
     callbacks = [instantiate(c) for c in cfg.get("callbacks", {}).values()]
+    if not cfg.trainer.get("enable_progress_bar", True):  # the trainer's switch also turns the configured bar off
+        callbacks = [c for c in callbacks if not isinstance(c, L.pytorch.callbacks.ProgressBar)]
     throughput = _Throughput()
     loggers = [instantiate(c) for c in cfg.get("logger", {}).values()]
     trainer = instantiate(cfg.trainer, callbacks=callbacks + [throughput], logger=loggers or False)
