@@ -72,8 +72,13 @@ class NVSModule(L.LightningModule):
 
     def training_step(self, batch: Batch, batch_idx: int):
         out = self(batch, self.train_needs)
-        total = 0.0
         bs = batch["src"].shape[0]
+        # Terms that own a critic (adversarial) train it first, on detached predictions, with its own optimiser.
+        for name, term in self.losses.items():
+            if hasattr(term, "update_critic"):
+                for key, value in term.update_critic(out, batch).items():
+                    self.log(f"train/{name}/{key}", value, batch_size=bs)
+        total = 0.0
         values = {}
         for name, term in self.losses.items():
             values[name] = value = term(out, batch)
@@ -154,8 +159,11 @@ class NVSModule(L.LightningModule):
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         # The resolved run config travels with the weights so that evaluation can rebuild the same network.
         checkpoint["nvs_config"] = getattr(self, "run_config", None)
-        # Loss networks (frozen VGG) are rebuilt from their weight file, not stored 30 MB at a time.
-        for key in [k for k in checkpoint["state_dict"] if k.startswith("losses.")]:
+        # Frozen loss networks (VGG) are rebuilt from their weight file, not stored 30 MB at a time; terms that train
+        # something of their own (an adversarial critic) are kept, so a resumed run continues with them.
+        frozen = tuple(f"losses.{name}." for name, term in self.losses.items()
+                       if not any(p.requires_grad for p in term.parameters()))
+        for key in [k for k in checkpoint["state_dict"] if k.startswith(frozen)]:
             del checkpoint["state_dict"][key]
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
@@ -163,7 +171,8 @@ class NVSModule(L.LightningModule):
         return super().load_state_dict({**state_dict, **own}, strict=strict, assign=assign)
 
     def configure_optimizers(self):
-        params = [p for p in self.parameters() if p.requires_grad]
+        # The network's parameters only: a loss term with trainable parts (a critic) steps them with its own optimiser.
+        params = [p for p in self.net.parameters() if p.requires_grad]
         optimizer = self.optimizer_factory(params)
         if self.scheduler_factory is None:
             return optimizer
