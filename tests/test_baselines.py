@@ -178,9 +178,12 @@ def test_chen_warp_matches_inverse_warp_inside_and_replicates_the_border():
     assert torch.allclose(same, src, atol=1e-5) and same_valid.all()
 
 
-def test_sun_starts_as_a_copy_of_the_source_in_its_flow_branch():
+def test_sun_zero_flow_copies_the_source_and_the_blend_is_the_confidence_softmax():
     torch.manual_seed(0)
     net = Sun(64)
+    last = net.flow_decoder.out[-1]  # the linear conv to (flow x, flow y, confidence)
+    torch.nn.init.zeros_(last.weight)
+    torch.nn.init.zeros_(last.bias)
     batch = fixture_batch()
     out = net(batch)
     assert torch.allclose(out[RGB_BRANCHES]["flow"], batch["src"], atol=1e-5)
@@ -188,6 +191,31 @@ def test_sun_starts_as_a_copy_of_the_source_in_its_flow_branch():
     assert w.shape == (2, 2, 64, 64) and torch.allclose(w.sum(1), torch.ones(2, 64, 64), atol=1e-6)
     blend = w[:, :1] * out[RGB_BRANCHES]["flow"] + w[:, 1:] * out[RGB_BRANCHES]["pixel"]
     assert torch.allclose(out["rgb"], blend, atol=1e-6)
+
+
+def test_sun_flow_is_in_their_units_and_their_layers_are_there():
+    from nvs.models.baselines.sun import coordinate_channels, sample_flow
+
+    # A flow of 2/W moves the sampling point by one pixel (their sampler reads pixel j at (x + 1) W / 2).
+    src = torch.arange(8.0).view(1, 1, 1, 8).expand(1, 1, 8, 8).contiguous()
+    flow = torch.zeros(1, 2, 8, 8)
+    flow[:, 0] = 2.0 / 8
+    moved = sample_flow(src, flow, "border")
+    assert torch.allclose(moved[..., :-1], src[..., 1:]) and torch.allclose(moved[..., -1], src[..., -1])
+    assert sample_flow(src, flow, "zeros")[..., -1].abs().max() < 0.51  # half a pixel of zeros blended in
+    # Coordinates: pixel j at 2j/W - 1 (x) and 2i/H - 1 (y), as their add_image_coord.
+    c = coordinate_channels(1, 4, 8, src)
+    assert torch.allclose(c[0, 0, 0], torch.arange(8.0) / 4 - 1) and torch.allclose(c[0, 1, :, 0], torch.arange(4.0) / 2 - 1)
+    net = Sun(64)
+    assert [m[0].out_channels for m in net.flow_encoder.convs] == [32, 64, 128, 256, 512]
+    assert len(net.flow_decoder.res) == 4 and len(net.pixel_decoder.res) == 0
+    assert [len(s) for s in net.pixel_encoder.lstm] == [2, 2, 2] and len(net.flow_encoder.lstm) == 0
+    assert [st[-2].out_channels for st in net.pixel_decoder.ups] == [256, 128, 64, 32, 16]
+    # The pixel decoder reads the encoder at every stage after the bottleneck; the flow decoder never does.
+    assert net.pixel_decoder.skip_at == [False, True, True, True, True] and not any(net.flow_decoder.skip_at)
+    assert not any(isinstance(m, (torch.nn.BatchNorm2d, torch.nn.InstanceNorm2d)) for m in net.modules())
+    with pytest.raises(ValueError, match="divisible by 2\\^n_layers"):
+        Sun(80)
 
 
 # -- training ---------------------------------------------------------------------------------------------------------
