@@ -2,6 +2,7 @@
 
 Objects: size=256 out=data/<category>_<size> seed=0 max_models=N supersample=3 pairs_per_model=30
 Drive:   size=256 out=data/drive_<size> seed=0 sequences=10 frames=200 supersample=3
+         sources=stk,trigger,torcs camera=kitti|wide
 Contact: out=docs/contact_sheet.png chairs=DIR cars=DIR drive=DIR models=4 size=128
 """
 
@@ -16,7 +17,7 @@ _INT_KEYS = {"size", "seed", "max_models", "sequences", "frames", "supersample",
 _KEYS = {
     "chairs": {"size", "out", "seed", "max_models", "supersample", "pairs_per_model"},
     "cars": {"size", "out", "seed", "max_models", "supersample", "pairs_per_model"},
-    "drive": {"size", "out", "seed", "sequences", "frames", "supersample"},
+    "drive": {"size", "out", "seed", "sequences", "frames", "supersample", "sources", "camera"},
     "contact": {"out", "chairs", "cars", "drive", "models", "size"},
 }
 
