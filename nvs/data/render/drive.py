@@ -1,16 +1,26 @@
-"""Render driving sequences along TORCS road tracks into the KITTI-odometry format read by nvs.data.kitti.
+"""Render driving sequences through game scenes into the KITTI-odometry format read by nvs.data.kitti.
 
-The camera (OpenCV, fx = fy = 160 at 256^2) rides 1.65 m above the centre of the right lane, 1 m between frames,
-looking along the smoothed centre line (pitch follows the road, roll 0). The centre line comes from the mesh:
-road-surface objects `TKMN*` are triangle strips whose vertex pairs are road cross-sections. Sky pixels get the
-track's background.png panorama (cylindrical, approximate) and depth 0 (no data).
+Sources (`sources=` option, comma-separated; round-robin over sources, then over each source's scenes):
+  stk      SuperTuxKart race tracks (nvs.data.render.stk): town streets, temples, mansions, forests; the
+           centre line is the driveline (quads.xml); scripts/install_drive_assets.sh extracts the data.
+  torcs    TORCS road tracks (AC3D): the centre line comes from the mesh: road-surface objects `TKMN*` are
+           triangle strips whose vertex pairs are road cross-sections.
+  trigger  Trigger Rally stages (nvs.data.render.trigger): heightmap terrain, the road mask's centre line.
+
+The camera (OpenCV; `camera=kitti`: the paper's KITTI intrinsics f = 718.9, c = 128 at 256^2, a ~20 degree view;
+`camera=wide`: f = 160, ~77 degrees) rides 1.65 m above the centre of the right lane, 1 m between frames,
+looking along the smoothed centre line (pitch follows the road, roll 0). A scene's sequences are disjoint
+windows of its centre line. Splits are by scene (a test scene is never trained on). Sky pixels get the scene's
+sky (panorama, sky-box or colour) and depth 0 (no data).
 """
 
 from __future__ import annotations
 
 import random
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 from PIL import Image
@@ -20,17 +30,57 @@ from nvs.atomic import write_json, write_text
 from nvs.data.render.ac3d import AcModel, read_ac3d
 from nvs.data.render.assets import COPYRIGHT, TORCS_DIR, ac3d_parts
 from nvs.data.render.output import write_credits, write_depth, write_png
-from nvs.data.render.scene import Renderer, scaled_K, to_pyrender
+from nvs.data.render.scene import Part, Renderer, scaled_K, to_pyrender
 
-K256 = np.array([[160.0, 0.0, 128.0], [0.0, 160.0, 128.0], [0.0, 0.0, 1.0]])
+# fx = fy at 256^2 (principal point at the centre), per camera option.
+CAMERAS = {"kitti": 718.9, "wide": 160.0}
 CAMERA_HEIGHT = 1.65
 STEP = 1.0
+WINDOW_GAP = 20.0  # m of centre line left between two sequences of one scene
 MAX_GAP = 2.0  # m: strip ends further apart than this are not chained (joined strips share their ends)
 SMOOTH = 4  # m: half-window of the moving average applied to the centre line
 MAX_PAIR_OFFSET = 7
-UP = np.array([0.0, 1.0, 0.0])  # AC3D tracks are y up, in metres
+UP = np.array([0.0, 1.0, 0.0])  # every scene is returned y up, in metres
 SKY_ELEVATION = (-10.0, 60.0)  # degrees spanned by background.png from bottom to top row (approximate)
+DEFAULT_SOURCES = "stk,trigger,torcs"
+# Depth histogram written with every render (depth_stats.json): log-spaced bins in metres.
+DEPTH_BINS = np.logspace(-2, 5, 7 * 50 + 1)
 
+
+def camera_K(camera: str) -> np.ndarray:
+    """K (3,3) at 256^2 of a camera option."""
+    if camera not in CAMERAS:
+        raise ValueError(f"unknown camera {camera!r}; known: {', '.join(CAMERAS)}")
+    f = CAMERAS[camera]
+    return np.array([[f, 0.0, 128.0], [0.0, f, 128.0], [0.0, 0.0, 1.0]])
+
+
+@dataclass
+class DriveScene:
+    """A loaded scene: surfaces (y up, metres), centre-line runs [(points (n,3), road widths (n,))] in driving
+    order, and sky colour of viewing directions (...,3) -> RGB (...,3) float 0..255."""
+
+    parts: list[Part]
+    runs: list[tuple[np.ndarray, np.ndarray]]
+    sky: Callable[[np.ndarray], np.ndarray]
+    missing: list[str]
+
+
+@dataclass
+class SceneSource:
+    """One scene to drive through: source ('stk' | 'torcs' | 'trigger'), name, centre-line runs (cheap to read),
+    the full loader, the Debian package, its licence and a credit line."""
+
+    source: str
+    name: str
+    runs: Callable[[], list[tuple[np.ndarray, np.ndarray]]]
+    load: Callable[[], DriveScene]
+    package: str
+    licence: str
+    credit: str
+
+
+# --- TORCS ------------------------------------------------------------------------------------------------------
 
 def road_tracks() -> list[Path]:
     """Track folders (road category) that have an AC3D mesh, sorted by name."""
@@ -125,28 +175,205 @@ def camera_poses(path: np.ndarray, widths: np.ndarray, start: int, frames: int) 
     return np.stack(poses)
 
 
-def sky_colour(panorama: np.ndarray, T_world_cam: np.ndarray, K: np.ndarray, size: int) -> np.ndarray:
-    """Panorama colour (size,size,3) float of every pixel's viewing ray (cylindrical mapping)."""
+def view_dirs(T_world_cam: np.ndarray, K: np.ndarray, size: int) -> np.ndarray:
+    """World direction (size,size,3) of every pixel's viewing ray (unit length)."""
     v, u = np.mgrid[0:size, 0:size].astype(np.float64)
     rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1)
     d = rays @ T_world_cam[:3, :3].T
-    d /= np.linalg.norm(d, axis=-1, keepdims=True)
-    azimuth = np.arctan2(d[..., 0], d[..., 2])
-    elevation = np.degrees(np.arcsin(np.clip(d[..., 1], -1, 1)))
-    H, W = panorama.shape[:2]
-    col = ((azimuth / (2 * np.pi)) % 1.0 * W).astype(np.int64) % W
-    lo, hi = SKY_ELEVATION
-    row = np.clip(((hi - elevation) / (hi - lo) * (H - 1)).round().astype(np.int64), 0, H - 1)
-    return panorama[row, col].astype(np.float32)
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 
-def _split_sequences(n: int, seed: int) -> dict[str, list[int]]:
-    order = list(range(n))
-    random.Random(seed).shuffle(order)
-    n_test = max(1, round(0.2 * n)) if n >= 3 else 0
-    n_val = max(1, round(0.1 * n)) if n >= 3 else 0
-    return {"test": sorted(order[:n_test]), "val": sorted(order[n_test:n_test + n_val]),
-            "train": sorted(order[n_test + n_val:])}
+def panorama_sky(panorama: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    """A cylindrical panorama (H,W,3) spanning SKY_ELEVATION -> sky colour of directions (...,3)."""
+
+    def sky(d: np.ndarray) -> np.ndarray:
+        azimuth = np.arctan2(d[..., 0], d[..., 2])
+        elevation = np.degrees(np.arcsin(np.clip(d[..., 1], -1, 1)))
+        H, W = panorama.shape[:2]
+        col = ((azimuth / (2 * np.pi)) % 1.0 * W).astype(np.int64) % W
+        lo, hi = SKY_ELEVATION
+        row = np.clip(((hi - elevation) / (hi - lo) * (H - 1)).round().astype(np.int64), 0, H - 1)
+        return panorama[row, col].astype(np.float32)
+
+    return sky
+
+
+def torcs_sources() -> list[SceneSource]:
+    out = []
+    for d in road_tracks():
+        acc = d / f"{d.name}.acc"
+
+        def runs(acc=acc):
+            return [centre_line(read_ac3d(acc))]
+
+        def load(d=d, acc=acc, runs=runs):
+            parts = ac3d_parts(acc, [d, TORCS_DIR / "data" / "textures"])
+            with Image.open(d / "background.png") as im:
+                panorama = np.asarray(im.convert("RGB"))
+            return DriveScene(parts, runs(), panorama_sky(panorama), [])
+
+        out.append(SceneSource("torcs", d.name, runs, load, "torcs-data", "GPL-2+ / Free Art License",
+                               f"TORCS road track {d.name} (tracks/road/{d.name}/readme.txt)"))
+    return out
+
+
+def stk_sources() -> list[SceneSource]:
+    from nvs.data.render import stk
+
+    out = []
+    for d in stk.race_tracks():
+        info = stk.track_info(d)
+
+        def load(d=d):
+            parts, missing = stk.load_scene(d)
+            return DriveScene(parts, stk.driveline(d), stk.sky_function(d), missing)
+
+        out.append(SceneSource("stk", d.name, lambda d=d: stk.driveline(d), load, "supertuxkart-data",
+                               "CC-BY-SA / GPL (see the package's copyright file)",
+                               f"SuperTuxKart track '{info['name']}' by {info['designer'] or 'the STK team'} "
+                               f"(tracks/{d.name})"))
+    return out
+
+
+def trigger_sources() -> list[SceneSource]:
+    from nvs.data.render import trigger
+
+    return [SceneSource("trigger", name, lambda name=name: trigger.load_stage(name).runs,
+                        lambda name=name: trigger.load_stage(name).scene(), "trigger-rally-data",
+                        "GPL-2+ (trigger-rally-data)", f"Trigger Rally stage {name} (data.zip maps/{name})")
+            for name in trigger.stages()]
+
+
+SOURCES: dict[str, Callable[[], list[SceneSource]]] = {"stk": stk_sources, "torcs": torcs_sources,
+                                                        "trigger": trigger_sources}
+INSTALL = {"stk": "scripts/install_drive_assets.sh", "torcs": "scripts/install_assets.sh",
+           "trigger": "scripts/install_assets.sh"}
+
+
+def scene_sources(names: str) -> dict[str, list[SceneSource]]:
+    """The requested sources' scenes, in source order; a requested source with nothing installed is an error."""
+    out = {}
+    for name in [n.strip() for n in names.split(",") if n.strip()]:
+        if name not in SOURCES:
+            raise ValueError(f"unknown drive source {name!r}; known: {', '.join(SOURCES)}")
+        found = SOURCES[name]()
+        if not found:
+            raise FileNotFoundError(f"no {name} scenes installed; run {INSTALL[name]}")
+        out[name] = found
+    if not out:
+        raise ValueError("sources is empty")
+    return out
+
+
+@dataclass
+class Planned:
+    seq: int
+    scene: SceneSource
+    run: int
+    start: int  # index into the resampled run (metres from its start)
+
+
+def _windows(runs: list[tuple[np.ndarray, np.ndarray]], frames: int) -> list[tuple[int, int]]:
+    """(run, start) of disjoint windows of `frames` m (+ WINDOW_GAP between them) along the resampled runs."""
+    out = []
+    need = int(frames * STEP) + 10
+    for r, (pts, _) in enumerate(runs):
+        length = float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum()) if len(pts) > 1 else 0.0
+        n = int((length + WINDOW_GAP) // (need + WINDOW_GAP))
+        out += [(r, 2 + int(k * (need + WINDOW_GAP))) for k in range(n)]
+    return out
+
+
+def plan_sequences(sources: dict[str, list[SceneSource]], sequences: int, frames: int, seed: int,
+                   failed: list[str]) -> list[Planned]:
+    """Round-robin over sources, then over each source's scenes (seeded order), each turn taking the scene's
+    next window. Scenes whose centre line cannot be read are reported in `failed` and skipped."""
+    rng = random.Random(seed)
+    queues = {}
+    for src, scenes in sources.items():
+        order = list(scenes)
+        rng.shuffle(order)
+        queues[src] = order
+    windows: dict[tuple[str, str], list[tuple[int, int]]] = {}
+    plan: list[Planned] = []
+    cursor = {src: 0 for src in queues}
+    while len(plan) < sequences and any(queues.values()):
+        for src in list(queues):
+            if len(plan) >= sequences:
+                break
+            while queues[src]:
+                i = cursor[src] % len(queues[src])
+                sc = queues[src][i]
+                key = (src, sc.name)
+                if key not in windows:
+                    try:
+                        win = _windows([resample(p, w, STEP) for p, w in sc.runs()], frames)
+                    except Exception as err:  # a scene that cannot be read is named and skipped
+                        win = []
+                        failed.append(f"{src}/{sc.name}: {err.__class__.__name__}: {err}")
+                    rng.shuffle(win)
+                    windows[key] = win
+                if not windows[key]:
+                    queues[src].pop(i)
+                    continue
+                run, start = windows[key].pop()
+                plan.append(Planned(len(plan), sc, run, start))
+                cursor[src] = i + 1
+                break
+    if len(plan) < sequences:
+        raise RuntimeError(f"the scenes hold only {len(plan)} windows of {frames} m; asked for {sequences} "
+                           "sequences (fewer frames or more sources)")
+    return plan
+
+
+def split_scenes(plan: list[Planned], seed: int) -> dict[str, list[int]]:
+    """Sequences by split, splitting SCENES (per source, seeded): ~20% test, ~10% val, the rest train."""
+    by_source: dict[str, list[str]] = {}
+    for p in plan:
+        names = by_source.setdefault(p.scene.source, [])
+        if p.scene.name not in names:
+            names.append(p.scene.name)
+    where: dict[tuple[str, str], str] = {}
+    rng = random.Random(seed)
+    total = len({(p.scene.source, p.scene.name) for p in plan})
+    for src, names in by_source.items():
+        names = sorted(names)
+        rng.shuffle(names)
+        n = len(names)
+        n_test = max(1, round(0.2 * n)) if total >= 3 else 0
+        n_val = max(1, round(0.1 * n)) if total >= 3 and n >= 3 else 0
+        for k, name in enumerate(names):
+            where[(src, name)] = "test" if k < n_test else "val" if k < n_test + n_val else "train"
+    out = {"test": [], "val": [], "train": []}
+    for p in plan:
+        out[where[(p.scene.source, p.scene.name)]].append(p.seq)
+    if total >= 3 and not out["train"]:  # few scenes: keep a training scene
+        out["train"].append(out["test"].pop())
+    return out
+
+
+def depth_histogram(root: Path, ids: list[str]) -> np.ndarray:
+    """Counts (len(DEPTH_BINS)+1,) of depth values over the frames: [0] = no data (<= 0), then per bin
+    (values beyond the last edge land in the last bin)."""
+    counts = np.zeros(len(DEPTH_BINS) + 1, dtype=np.int64)
+    for fid in ids:
+        d = np.load(root / "depth" / f"{fid}.npy").reshape(-1)
+        counts[0] += int((d <= 0).sum())
+        v = d[d > 0]
+        idx = np.clip(np.searchsorted(DEPTH_BINS, v, side="right") - 1, 0, len(DEPTH_BINS) - 2)
+        counts[1:len(DEPTH_BINS)] += np.bincount(idx, minlength=len(DEPTH_BINS) - 1)
+    return counts
+
+
+def representable_fraction(counts, min_depth_m: float, max_depth_m: float) -> float:
+    """Fraction of valid depths (counts from depth_histogram) that are certainly inside (min, max) metres:
+    only bins entirely inside count, so the answer errs low."""
+    counts = np.asarray(counts)
+    valid = counts[1:len(DEPTH_BINS)]
+    lo, hi = DEPTH_BINS[:-1], DEPTH_BINS[1:]
+    inside = (lo >= min_depth_m) & (hi <= max_depth_m)
+    total = valid.sum()
+    return float(valid[inside].sum() / total) if total else 0.0
 
 
 def frame_id(seq: int, frame: int) -> str:
@@ -173,109 +400,120 @@ def pose_line(fid: str, T: np.ndarray) -> str:
     return fid + " " + " ".join(f"{v:.9f}" for v in vals) + "\n"
 
 
-def track_order(seed: int) -> list[str]:
-    """Road tracks in a seeded order; sequence s drives the s-th usable one (cycling when there are more)."""
-    tracks = [t.name for t in road_tracks()]
-    if not tracks:
-        raise FileNotFoundError("no TORCS road tracks found; install the asset packages with "
-                                "scripts/install_assets.sh")
-    random.Random(seed).shuffle(tracks)
-    return tracks
-
-
 def render_drive(out: Path, size: int = 256, seed: int = 0, sequences: int = 10, frames: int = 200,
-                 supersample: int = 3, progress: bool = True) -> dict:
-    """Render `sequences` x `frames` frames into `out` (KITTI-odometry format plus depth/, meta.json, CREDITS)."""
+                 supersample: int = 3, sources: str = DEFAULT_SOURCES, camera: str = "kitti",
+                 progress: bool = True) -> dict:
+    """Render `sequences` x `frames` frames into `out` (KITTI-odometry format plus depth/, meta.json,
+    depth_stats.json, CREDITS.txt). Frames already on disk are kept (reruns resume)."""
     from tqdm import tqdm
 
+    if sequences > 100:
+        raise ValueError("at most 100 sequences (frame ids carry a two-digit sequence number)")
     out = Path(out)
+    K256 = camera_K(camera)
     K = scaled_K(K256, size)
     Kss = scaled_K(K256, size * supersample)
-    order = track_order(seed)
-    rng_start = random.Random(seed + 2)
-    renderer = Renderer(size * supersample, Kss, znear=0.3, zfar=1500.0, bg_color=(0.0, 0.0, 0.0), lit=False)
+    failed: list[str] = []
+    plan = plan_sequences(scene_sources(sources), sequences, frames, seed, failed)
+    renderer = Renderer(size * supersample, Kss, znear=0.3, zfar=5000.0, bg_color=(0.0, 0.0, 0.0), lit=False)
     poses_lines: dict[int, list[str]] = {}
-    tracks_used, failed = [], []
+    missing: dict[str, list[str]] = {}
     rendered = 0
+    seconds_by_source: dict[str, float] = {}
     t0 = time.perf_counter()
     bar = tqdm(total=sequences * frames, desc=f"render drive {size}px", unit="frame", disable=not progress)
-    queue = [n for _ in range(sequences) for n in order]  # cycle through the tracks in the seeded order
-    bad: set[str] = set()
+    by_scene: dict[tuple[str, str], list[Planned]] = {}
+    for p in plan:
+        by_scene.setdefault((p.scene.source, p.scene.name), []).append(p)
+    S, c = size * supersample, supersample // 2
     try:
-        for seq in range(sequences):
-            while True:  # a track that fails to load or is too short is reported and the next one taken
-                if not queue:
-                    raise RuntimeError(f"no usable track left for sequence {seq}")
-                name = queue.pop(0)
-                if name in bad:
-                    continue
-                d = TORCS_DIR / "tracks" / "road" / name
-                try:
-                    path, widths = resample(*centre_line(read_ac3d(d / f"{name}.acc")), STEP)
-                    if len(path) < frames + 10:
-                        raise ValueError(f"centre line {len(path)} m is shorter than {frames + 10} m")
-                    break
-                except Exception as err:
-                    bad.add(name)
-                    failed.append(f"{name}: {err.__class__.__name__}: {err}")
-                    tqdm.write(f"skipped track {name}: {err}")
-            start = int(rng_start.random() * (len(path) - frames - 5)) + 2
-            poses = camera_poses(path, widths, start, frames)
-            T0_inv = np.linalg.inv(poses[0])
-            poses_lines[seq] = [pose_line(frame_id(seq, i), T0_inv @ T) for i, T in enumerate(poses)]
-            tracks_used.append({"seq": seq, "track": name, "start_m": start * STEP, "frames": frames})
-            ids = [frame_id(seq, i) for i in range(frames)]
-            if all((out / "images" / f"{i}.png").is_file() and (out / "depth" / f"{i}.npy").is_file() for i in ids):
-                bar.update(frames)
-                continue
-            renderer.set_mesh(to_pyrender(ac3d_parts(d / f"{name}.acc", [d, TORCS_DIR / "data" / "textures"])))
-            with Image.open(d / "background.png") as im:
-                panorama = np.asarray(im.convert("RGB"))
-            S = size * supersample
-            c = supersample // 2
-            for fid, T in zip(ids, poses):
-                rgb, depth = renderer.render(T)
-                sky = depth <= 0
-                img = rgb.astype(np.float32)
-                img[sky] = sky_colour(panorama, T, Kss, S)[sky]
-                img = img.reshape(size, supersample, size, supersample, 3).mean(axis=(1, 3))
-                write_depth(out / "depth" / f"{fid}.npy", depth[c::supersample, c::supersample])
-                write_png(out / "images" / f"{fid}.png", np.clip(np.rint(img), 0, 255).astype(np.uint8))
-                rendered += 1
-                bar.update(1)
+        for (src, name), items in by_scene.items():
+            ts = time.perf_counter()
+            runs = [resample(pts, w, STEP) for pts, w in items[0].scene.runs()]
+            todo = []
+            for p in items:
+                path, widths = runs[p.run]
+                poses = camera_poses(path, widths, p.start, frames)
+                T0_inv = np.linalg.inv(poses[0])
+                poses_lines[p.seq] = [pose_line(frame_id(p.seq, i), T0_inv @ T) for i, T in enumerate(poses)]
+                ids = [frame_id(p.seq, i) for i in range(frames)]
+                if all((out / "images" / f"{i}.png").is_file() and (out / "depth" / f"{i}.npy").is_file()
+                       for i in ids):
+                    bar.update(frames)
+                else:
+                    todo.append((ids, poses))
+            if todo:
+                scene = items[0].scene.load()
+                if scene.missing:
+                    missing[f"{src}/{name}"] = scene.missing
+                renderer.set_mesh(to_pyrender(scene.parts))
+                for ids, poses in todo:
+                    for fid, T in zip(ids, poses):
+                        rgb, depth = renderer.render(T)
+                        sky = depth <= 0
+                        img = rgb.astype(np.float32)
+                        if sky.any():
+                            img[sky] = scene.sky(view_dirs(T, Kss, S)[sky])
+                        img = img.reshape(size, supersample, size, supersample, 3).mean(axis=(1, 3))
+                        write_depth(out / "depth" / f"{fid}.npy", depth[c::supersample, c::supersample])
+                        write_png(out / "images" / f"{fid}.png", np.clip(np.rint(img), 0, 255).astype(np.uint8))
+                        rendered += 1
+                        bar.update(1)
+            seconds_by_source[src] = seconds_by_source.get(src, 0.0) + time.perf_counter() - ts
     finally:
         bar.close()
         renderer.close()
     seconds = time.perf_counter() - t0
     write_text(out / "poses.txt", "".join(line for s in sorted(poses_lines) for line in poses_lines[s]))
-    split = _split_sequences(sequences, seed)
+    split = split_scenes(plan, seed)
     rng = random.Random(seed + 1)
     train = [p for s in split["train"] for p in _pairs_all(s, frames)]
     val = [p for s in split["val"] for p in _pairs_sampled(s, frames, rng)]
     test = [p for s in split["test"] for p in _pairs_sampled(s, frames, rng)]
     for fname, pairs in (("pairs_train.txt", train), ("pairs_val.txt", val), ("eval_kitti.txt", test)):
         write_text(out / fname, "".join(f"{a} {b}\n" for a, b in pairs))
-    names = sorted({t["track"] for t in tracks_used})
-    write_credits(out, [f"track {n}: TORCS road track (tracks/road/{n}/readme.txt); package torcs-data; "
-                        "licence: GPL-2+ / Free Art License" for n in names], ["torcs-data"], COPYRIGHT)
+    used = {(p.scene.source, p.scene.name): p.scene for p in plan}
+    packages = sorted({sc.package for sc in used.values()})
+    copyright_files = dict(COPYRIGHT)
+    from nvs.data.render.stk import STK_COPYRIGHT
+
+    copyright_files["supertuxkart-data"] = STK_COPYRIGHT
+    write_credits(out, [f"{sc.credit}; package {sc.package}; licence: {sc.licence}"
+                        for _, sc in sorted(used.items())], packages, copyright_files)
+    counts = {}
+    for src in sorted({p.scene.source for p in plan}):
+        ids = [frame_id(p.seq, i) for p in plan if p.scene.source == src for i in range(frames)]
+        counts[src] = depth_histogram(out, ids).tolist()
+    write_json(out / "depth_stats.json", {
+        "bins_m": DEPTH_BINS.tolist(),
+        "about": "per source: [0] = pixels without depth (sky), then counts of depths in metres per bin "
+                 "[bins_m[k], bins_m[k+1]); see nvs.data.render.drive.representable_fraction",
+        "size": size, "camera": camera, "K": K.tolist(), "sequences": sequences, "frames": frames,
+        "counts": counts})
     meta = {
         "format": "scenes",
         "size": size,
         "K": K.tolist(),
+        "camera": camera,
         "seed": seed,
-        "sequences": tracks_used,
+        "sources": sources,
+        "sequences": [{"seq": p.seq, "source": p.scene.source, "scene": p.scene.name, "run": p.run,
+                       "start_m": p.start * STEP, "frames": frames} for p in plan],
         "split": {k: [f"{s:02d}" for s in v] for k, v in split.items()},
-        "camera": {"height_m": CAMERA_HEIGHT, "step_m": STEP, "lane": "right lane centre (road width / 4)",
-                   "poses": "camera-to-world of the OpenCV camera, relative to each sequence's first frame"},
+        "rig": {"height_m": CAMERA_HEIGHT, "step_m": STEP, "lane": "right lane centre (road width / 4)",
+                "poses": "camera-to-world of the OpenCV camera, relative to each sequence's first frame"},
         "depth": "depth/{id}.npy float32 z-depth in metres, 0 = sky / no data",
-        "lighting": "unlit (texture colour); sky = background.png panorama, depth 0",
+        "lighting": "unlit (texture colour); sky from the scene's panorama / sky-box / colour, depth 0",
         "supersample": supersample,
-        "licence": "TORCS tracks: GPL-2+ / Free Art License (torcs-data); see CREDITS.txt",
-        "failed_tracks": failed,
+        "licence": "per scene, see CREDITS.txt",
+        "failed_scenes": failed,
+        "missing_files": missing,
         "render_seconds": round(seconds, 2),
+        "render_seconds_by_source": {k: round(v, 2) for k, v in seconds_by_source.items()},
         "frames_rendered": rendered,
     }
     write_json(out / "meta.json", meta)
-    print(f"drive: {sequences} sequences x {frames} frames from {len(names)} tracks; {rendered} frames in "
-          f"{seconds:.1f} s" + (f" ({1000 * seconds / rendered:.1f} ms/frame)" if rendered else ""))
+    print(f"drive: {sequences} sequences x {frames} frames from {len(used)} scenes "
+          f"({', '.join(f'{s}: {sum(p.scene.source == s for p in plan)}' for s in counts)}); {rendered} frames "
+          f"in {seconds:.1f} s" + (f" ({1000 * seconds / rendered:.1f} ms/frame)" if rendered else ""))
     return meta
