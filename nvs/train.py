@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import collections
+import difflib
+import inspect
+import shlex
+import signal
 import statistics
 import time
 import zipfile
@@ -12,14 +16,19 @@ import hydra
 import lightning as L
 import torch
 from hydra.core.hydra_config import HydraConfig
+from hydra.errors import InstantiationException
+from hydra.types import RunMode
 from hydra.utils import instantiate
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf
 
 from nvs.build import build_data, build_module, device_name, git_sha, parameter_count
+from nvs.checkpoints import AtomicCheckpointIO
 from nvs.config_check import check_cli_overrides
-from nvs.errors import UserError, exits_cleanly
+from nvs.errors import Interrupted, UserError, exits_cleanly, user_message
 from nvs.quiet import silence_known_noise
-from nvs.run_files import summary_line, write_metrics, write_per_image
+from nvs.run_files import check_writable, is_global_zero, remove_unstarted_run, summary_line, write_metrics, \
+    write_per_image
 
 
 class _Throughput(L.Callback):
@@ -35,7 +44,7 @@ class _Throughput(L.Callback):
     def __init__(self):
         self.samples, self.start, self.prior_s, self.train_s = 0, None, 0.0, 0.0
         self.step_s: collections.deque[float] = collections.deque(maxlen=self.KEPT_STEPS)
-        self._step_start, self._segment_steps = None, 0
+        self._step_start, self.segment_steps = None, 0
 
     def on_train_start(self, trainer, pl_module):
         self.start = time.perf_counter()
@@ -45,8 +54,8 @@ class _Throughput(L.Callback):
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
         self.samples += batch["src"].shape[0]
-        self._segment_steps += 1
-        if self._step_start is not None and self._segment_steps > self.WARMUP_STEPS:
+        self.segment_steps += 1
+        if self._step_start is not None and self.segment_steps > self.WARMUP_STEPS:
             self.step_s.append(time.perf_counter() - self._step_start)
 
     def on_train_end(self, trainer, pl_module):
@@ -65,6 +74,99 @@ class _Throughput(L.Callback):
         self.step_s.extend(state_dict.get("step_s", []))
 
 
+class _Interruption(L.Callback):
+    """SIGINT / SIGTERM: save ``last.ckpt`` and stop with :class:`Interrupted` (one line: where, how to resume).
+
+    During training the signal is acted on at the end of the current step (or at once inside validation, where
+    Lightning itself stops on SIGTERM); outside training it interrupts at once.
+    """
+
+    def __init__(self, last: Path, resume: str):
+        self.last, self.resume = last, resume
+        self.signum: int | None = None
+        self.fitting = False
+        self._previous: dict[int, object] = {}
+
+    def install(self) -> None:
+        for s in (signal.SIGINT, signal.SIGTERM):
+            self._previous[s] = signal.signal(s, self._handler)
+
+    def restore(self) -> None:
+        for s, handler in self._previous.items():
+            signal.signal(s, handler)
+        self._previous = {}
+
+    def _handler(self, signum, frame) -> None:
+        first = self.signum is None
+        self.signum = signum
+        if not self.fitting or not first:  # outside a step (or a second Ctrl-C): at once
+            raise Interrupted(signum, self.message(saved=self.last.is_file(), step=None))
+
+    def message(self, saved: bool, step: int | None) -> str:
+        name = signal.Signals(self.signum).name
+        at = f" at step {step}" if step is not None else ""
+        if not saved:
+            return f"interrupted by {name}{at} before any checkpoint was written: nothing to resume"
+        return f"interrupted by {name}{at}: saved {self.last}; resume with: {self.resume}"
+
+    def _stop(self, trainer) -> None:
+        self.fitting = False
+        saved = self._save(trainer)
+        raise Interrupted(self.signum, self.message(saved, trainer.global_step))
+
+    def _save(self, trainer) -> bool:
+        if trainer.global_step == 0:
+            return self.last.is_file()
+        if not self.last.is_file() or torch.load(self.last, map_location="cpu", weights_only=False,
+                                                 mmap=True).get("global_step") != trainer.global_step:
+            trainer.save_checkpoint(self.last)
+        return True
+
+    def on_train_start(self, trainer, pl_module):
+        self.fitting = True
+        if self.signum is not None:
+            self._stop(trainer)
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        if self.signum is not None:
+            self._stop(trainer)
+
+    def on_train_end(self, trainer, pl_module):
+        if self.signum is not None:
+            self._stop(trainer)
+        self.fitting = False
+
+    def on_exception(self, trainer, pl_module, exception):
+        # Lightning stops on SIGTERM inside validation with its own SIGTERMException: the weights are still here.
+        if isinstance(exception, SIGTERMException) and self.signum is not None and self.fitting:
+            self.fitting = False
+            self._save(trainer)
+
+
+def resume_command(out_dir: Path) -> str:
+    """The command that resumes this run: the same overrides, with the run directory pinned."""
+    task = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
+    return shlex.join(["python", "-m", "nvs.train", *task, f"hydra.run.dir={out_dir}"])
+
+
+def _trainer(cfg: DictConfig, **kwargs) -> L.Trainer:
+    """The Trainer of ``cfg.trainer``; an unknown argument or a value the Trainer refuses is one UserError."""
+    if cfg.trainer.get("_target_") in ("lightning.pytorch.Trainer", "lightning.Trainer",
+                                       "lightning.pytorch.trainer.trainer.Trainer"):
+        known = set(inspect.signature(L.Trainer.__init__).parameters) - {"self"}
+        for key in cfg.trainer:
+            if key != "_target_" and key not in known:
+                hint = difflib.get_close_matches(str(key), known, n=1)
+                raise UserError(f"config 'trainer.{key}': not an argument of lightning.Trainer"
+                                + (f"; did you mean trainer.{hint[0]}?" if hint else ""))
+    try:
+        return instantiate(cfg.trainer, **kwargs)
+    except InstantiationException as err:
+        cause = err.__cause__ or err
+        message = user_message(cause) or f"{cause.__class__.__name__}: {cause}"
+        raise UserError(f"config 'trainer': {message}") from None
+
+
 def _resume_path(cfg: DictConfig, out_dir: Path) -> str | None:
     if cfg.ckpt_path in (None, "none", "null"):
         return None
@@ -81,24 +183,76 @@ def _complete(path: Path) -> str:
     if not zipfile.is_zipfile(path):
         raise UserError(f"{path}: incomplete checkpoint (the run was probably killed while writing it); "
                         "delete it to resume from scratch, or pass ckpt_path=<another checkpoint>")
+    try:  # every member's CRC: flipped bytes inside an intact zip would otherwise fail deep inside unpickling
+        with zipfile.ZipFile(path) as zf:
+            bad = zf.testzip()
+    except (zipfile.BadZipFile, OSError, EOFError) as err:
+        bad = f"({err})"
+    if bad:
+        raise UserError(f"{path}: corrupt checkpoint (member {bad} fails its checksum); delete it to resume from "
+                        "scratch, or pass ckpt_path=<another checkpoint>")
     return str(path)
 
 
-def run(cfg: DictConfig, out_dir: Path) -> dict:
-    """Train and test one configuration; writes metrics.json and test_per_image.csv into ``out_dir``."""
+def run(cfg: DictConfig, out_dir: Path, keep_unstarted: bool = True) -> dict:
+    """Train and test one configuration; writes metrics.json and test_per_image.csv into ``out_dir``.
+
+    ``keep_unstarted=False``: a failure before the first training step removes what the run wrote (and ``out_dir``
+    if that empties it).
+    """
+    throughput = _Throughput()  # counts the steps of this process
+    try:
+        return _run(cfg, out_dir, throughput)
+    except BaseException:
+        if not keep_unstarted and is_global_zero() and throughput.segment_steps == 0:
+            remove_unstarted_run(out_dir, _job_name())
+        raise
+
+
+def _job_name() -> str:
+    return HydraConfig.get().job.name if HydraConfig.initialized() else "train"
+
+
+def _run(cfg: DictConfig, out_dir: Path, throughput: _Throughput) -> dict:
     silence_known_noise()
     L.seed_everything(int(cfg.seed), workers=True)
     torch.set_float32_matmul_precision("high")
     datamodule = build_data(cfg)
+    fast_dev_run = bool(cfg.trainer.get("fast_dev_run"))
+    testing = bool(cfg.test) and not fast_dev_run
+    # Every list and referenced file of the splits this run reads, before the first step (seconds).
+    datamodule.validate(("train", "val", "test") if testing else ("train", "val"))
     module = build_module(cfg)
     callbacks = [instantiate(c) for c in cfg.get("callbacks", {}).values()]
     if not cfg.trainer.get("enable_progress_bar", True):  # the trainer's switch also turns the configured bar off
         callbacks = [c for c in callbacks if not isinstance(c, L.pytorch.callbacks.ProgressBar)]
-    throughput = _Throughput()
+    checkpoint_cbs = [cb for cb in callbacks if isinstance(cb, L.pytorch.callbacks.ModelCheckpoint)]
     loggers = [instantiate(c) for c in cfg.get("logger", {}).values()]
-    trainer = instantiate(cfg.trainer, callbacks=callbacks + [throughput], logger=loggers or False)
-    trainer.fit(module, datamodule=datamodule, ckpt_path=_resume_path(cfg, out_dir))
+    if is_global_zero():  # every output location is writable, or one line now instead of a lost run later
+        check_writable(out_dir)
+        for cb in checkpoint_cbs:
+            if cb.dirpath and not fast_dev_run:
+                check_writable(cb.dirpath)
+        for lg in loggers:
+            if getattr(lg, "log_dir", None):
+                check_writable(lg.log_dir)
+    ckpt_dir = Path(checkpoint_cbs[0].dirpath) if checkpoint_cbs and checkpoint_cbs[0].dirpath else out_dir
+    interruption = _Interruption(ckpt_dir / "last.ckpt", resume_command(out_dir))
+    trainer = _trainer(cfg, callbacks=callbacks + [throughput, interruption], logger=loggers or False,
+                       plugins=[AtomicCheckpointIO()])
+    interruption.install()
+    try:
+        return _fit_and_test(cfg, out_dir, trainer, module, datamodule, callbacks, throughput, interruption,
+                             testing)
+    except SIGTERMException:  # Lightning's own stop on SIGTERM (inside validation); last.ckpt saved on the way
+        raise Interrupted(signal.SIGTERM, interruption.message(interruption.last.is_file(), trainer.global_step)) \
+            from None
+    finally:
+        interruption.restore()
 
+
+def _fit_and_test(cfg, out_dir, trainer, module, datamodule, callbacks, throughput, interruption, testing) -> dict:
+    trainer.fit(module, datamodule=datamodule, ckpt_path=_resume_path(cfg, out_dir))
     result = {
         "model": module.model_name,
         "data": cfg.data.name,
@@ -114,7 +268,7 @@ def run(cfg: DictConfig, out_dir: Path) -> dict:
         "git_sha": git_sha(),
         "overrides": list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else [],
     }
-    if cfg.test and not cfg.trainer.get("fast_dev_run"):
+    if testing:
         ckpt = None
         for cb in callbacks:
             if isinstance(cb, L.pytorch.callbacks.ModelCheckpoint) and cb.best_model_path:
@@ -126,18 +280,29 @@ def run(cfg: DictConfig, out_dir: Path) -> dict:
         result["eval_forward_ms_per_image"] = module.test_forward_ms_per_image()
         result["checkpoint"] = ckpt
         result["test"] = module.test_summary()
-        write_per_image(out_dir / "test_per_image.csv", module.test_rows)
-    write_metrics(out_dir / "metrics.json", result)
+        if trainer.is_global_zero:  # the rows are gathered from every rank: one writer
+            write_per_image(out_dir / "test_per_image.csv", module.test_rows)
+    if trainer.is_global_zero:
+        write_metrics(out_dir / "metrics.json", result)
     return result
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="train")
 @exits_cleanly
 def main(cfg: DictConfig) -> None:
-    check_cli_overrides("train", HydraConfig.get().overrides.task)
     out_dir = Path(HydraConfig.get().runtime.output_dir)
-    OmegaConf.resolve(cfg)
-    result = run(cfg, out_dir)
+    # A run that ends before its first step leaves no directory behind (a multirun job's stays: it is reported).
+    keep = HydraConfig.get().mode != RunMode.RUN
+    try:
+        check_cli_overrides("train", HydraConfig.get().overrides.task)
+        OmegaConf.resolve(cfg)
+    except BaseException:
+        if not keep and is_global_zero():
+            remove_unstarted_run(out_dir, _job_name())
+        raise
+    result = run(cfg, out_dir, keep_unstarted=keep)
+    if not is_global_zero():
+        return
     test = result.get("test", {})
     if test:
         print(summary_line(test))

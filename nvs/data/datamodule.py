@@ -10,14 +10,21 @@ import lightning as L
 import torch
 from torch.utils.data import DataLoader, Dataset
 
+from nvs.data.files import depth_problem, image_problem
 from nvs.data.kitti import ScenesFormat
 from nvs.data.shapenet import ObjectsFormat, object_pairs, random_partner
-from nvs.errors import UserError
+from nvs.errors import DataError, UserError
 from nvs.geometry import scale_intrinsics
 
 
 class Format(Protocol):
     has_depth: bool
+
+    def references(self, split: str, val_fraction: float, seed: int) -> list[tuple]: ...
+
+    def image_path(self, fid: str): ...
+
+    def depth_path(self, fid: str): ...
 
     def read(self, fid: str, size: int, with_depth: bool) -> tuple[torch.Tensor, torch.Tensor | None]: ...
 
@@ -112,6 +119,8 @@ class PairDataset(Dataset):
             "pivot": self.pivot.clone(),
             "id_src": src_id,
             "id_tgt": tgt_id,
+            # position in the split: evaluation under DDP gathers rows by it (sampler padding repeats indices)
+            "index": i,
         }
         if d_src is not None:
             item["depth_src"], item["depth_tgt"] = d_src, d_tgt
@@ -137,6 +146,16 @@ class LoaderSettings:
     augment: dict | None = None
 
     def __post_init__(self):
+        for key in ("batch_size", "eval_batch_size", "val_pairs_per_model"):
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise UserError(f"data.loader.{key}={value!r}: expected a positive integer")
+        if isinstance(self.num_workers, bool) or not isinstance(self.num_workers, int) or self.num_workers < 0:
+            raise UserError(f"data.loader.num_workers={self.num_workers!r}: expected an integer >= 0")
+        if not 0 <= self.val_fraction < 1:
+            raise UserError(f"data.loader.val_fraction={self.val_fraction!r}: expected a fraction in [0, 1)")
+        if self.limit_test_pairs is not None and self.limit_test_pairs < 1:
+            raise UserError(f"data.loader.limit_test_pairs={self.limit_test_pairs!r}: expected null or >= 1")
         unknown = set(self.augment or {}) - {"mirror", "permute_rgb"}
         if unknown:
             raise UserError(f"data.loader.augment: unknown key(s) {sorted(unknown)}; expected mirror, permute_rgb")
@@ -163,6 +182,21 @@ class NVSDataModule(L.LightningDataModule):
                 cache = next(iter(self._sets.values())).cache
             self._sets[split] = self._build(split, cache)
         return self._sets[split]
+
+    def validate(self, splits=("train", "val", "test")) -> None:
+        """Check every list of ``splits`` and every file it references (images; depths when loaded) before any
+        step: raises DataError naming the list file and the line of the bad entry. Reads headers, not pixels."""
+        with_depth = self.loader.with_depth and self.fmt.has_depth
+        for split in splits:
+            for list_path, line, what, ids in self.fmt.references(split, self.loader.val_fraction, self.seed):
+                for fid in ids:
+                    image = self.fmt.image_path(fid)
+                    problem = image_problem(image, header=split == "test" or fid == ids[0])
+                    if problem is None and with_depth:
+                        image = self.fmt.depth_path(fid)
+                        problem = depth_problem(image, self.size)
+                    if problem:
+                        raise DataError(list_path, f"{what}: {problem}: {image}", line)
 
     def _build(self, split: str, cache: ViewCache) -> PairDataset:
         lo = self.loader

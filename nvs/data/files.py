@@ -84,8 +84,8 @@ def read_lines(path: str | Path) -> list[tuple[int, str]]:
     return out
 
 
-def read_ids(path: str | Path) -> list[str]:
-    """One id per line; duplicates are an error."""
+def read_id_lines(path: str | Path) -> dict[str, int]:
+    """One id per line -> {id: 1-based line number}, in file order; duplicates and an empty list are errors."""
     seen: dict[str, int] = {}
     for lineno, s in read_lines(path):
         if len(s.split()) != 1:
@@ -95,11 +95,17 @@ def read_ids(path: str | Path) -> list[str]:
         seen[s] = lineno
     if not seen:
         raise DataError(path, "no ids: the split is empty")
-    return list(seen)
+    return seen
 
 
-def read_pairs(path: str | Path, known: set[str] | None = None) -> list[tuple[str, str]]:
-    """``idA idB`` per line (A = source, B = target). Unknown ids and duplicated pairs are errors."""
+def read_ids(path: str | Path) -> list[str]:
+    """One id per line; duplicates are an error."""
+    return list(read_id_lines(path))
+
+
+def read_pair_lines(path: str | Path, known: set[str] | None = None) -> dict[tuple[str, str], int]:
+    """``idA idB`` per line (A = source, B = target) -> {(A, B): line number}. Unknown ids and duplicated pairs are
+    errors."""
     seen: dict[tuple[str, str], int] = {}
     for lineno, s in read_lines(path):
         parts = s.split()
@@ -115,7 +121,49 @@ def read_pairs(path: str | Path, known: set[str] | None = None) -> list[tuple[st
         seen[pair] = lineno
     if not seen:
         raise DataError(path, "no pairs: the split is empty")
-    return list(seen)
+    return seen
+
+
+def read_pairs(path: str | Path, known: set[str] | None = None) -> list[tuple[str, str]]:
+    """``idA idB`` per line (A = source, B = target). Unknown ids and duplicated pairs are errors."""
+    return list(read_pair_lines(path, known))
+
+
+def image_problem(path: Path, header: bool) -> str | None:
+    """Why ``path`` cannot be a view image (None if it looks fine): missing or empty, and with ``header`` an
+    unreadable header, a refused mode or a non-square size. Reads no pixels (fast enough for every file of a split)."""
+    try:
+        if path.stat().st_size == 0:
+            return "image file is empty"
+    except OSError:
+        return "image file is missing"
+    if not header:
+        return None
+    try:
+        with Image.open(path) as im:
+            mode, w, h = im.mode, im.width, im.height
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as err:
+        return f"cannot read image ({err.__class__.__name__}: {err})"
+    if mode not in _ACCEPTED_MODES:
+        return f"unsupported image mode {mode!r} (expected 8-bit RGB, RGBA, L or P)"
+    if w != h:
+        return f"image is {w}x{h}; expected a square image"
+    return None
+
+
+def depth_problem(path: Path, size: int) -> str | None:
+    """Why ``path`` cannot be a depth map for images of ``size`` (None if it fits); reads the .npy header only."""
+    if not path.is_file():
+        return "depth file is missing"
+    try:
+        arr = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError, EOFError) as err:
+        return f"cannot read depth ({err.__class__.__name__}: {err})"
+    if arr.ndim != 2 or arr.shape[0] != arr.shape[1]:
+        return f"depth must be a square 2-D array, got shape {arr.shape}"
+    if arr.shape[0] != size and arr.shape[0] % size:
+        return f"depth is {arr.shape[0]}x{arr.shape[0]}, not an integer multiple of the image size {size}"
+    return None
 
 
 def parse_float(token: str, path: Path, lineno: int, what: str) -> float:

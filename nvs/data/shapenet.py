@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from nvs.data.files import read_depth, read_ids, read_image, read_pairs
+from nvs.data.files import read_depth, read_id_lines, read_ids, read_image, read_pair_lines, read_pairs
 from nvs.errors import DataError
 
 AZIMUTHS = tuple(range(0, 360, 20))
@@ -110,15 +110,29 @@ class ObjectsFormat:
         return models
 
     def test_pairs(self) -> list[tuple[str, str]]:
+        return list(self._test_pair_lines())
+
+    def _test_pair_lines(self) -> dict[tuple[str, str], int]:
         path = self.root / f"eval_{self.category}_40.txt"
-        pairs = read_pairs(path)
-        for lineno, (a, b) in enumerate(pairs, start=1):
+        pairs = read_pair_lines(path)
+        for (a, b), lineno in pairs.items():
             for stem in (a, b):
                 try:
                     parse_stem(stem)
                 except ValueError as err:
-                    raise DataError(path, str(err)) from None
+                    raise DataError(path, str(err), lineno) from None
         return pairs
+
+    def references(self, split: str, val_fraction: float, seed: int) -> list[tuple[Path, int, str, list[str]]]:
+        """What a split reads, by the line of the list that names it: (list file, line, what, view stems)."""
+        if split == "test":
+            path = self.root / f"eval_{self.category}_40.txt"
+            return [(path, ln, f"pair '{a} {b}'", [a, b]) for (a, b), ln in self._test_pair_lines().items()]
+        models = self.split_models(split, val_fraction, seed)
+        val_file = self.root / "id_val.txt"
+        path = val_file if split == "val" and val_file.is_file() else self.root / "id_train.txt"
+        lines = read_id_lines(path)
+        return [(path, lines[m], f"model {m!r}", self.views(m)) for m in models]
 
     def views(self, model: str) -> list[str]:
         return [f"{model}_{a}_{e}" for a in AZIMUTHS for e in ELEVATIONS]
