@@ -37,7 +37,8 @@ def build_data(cfg: DictConfig) -> NVSDataModule:
             camera=OmegaConf.to_container(d.camera, resolve=True),
             loader=OmegaConf.to_container(d.loader, resolve=True),
             seed=int(cfg.seed), category=d.get("category"),
-            translation_scale=float(d.translation_scale), max_delta_azimuth=int(d.max_delta_azimuth))
+            translation_scale=float(d.translation_scale), max_delta_azimuth=int(d.max_delta_azimuth),
+            train_fraction=d.get("train_fraction", 1.0))
     except TypeError as err:
         raise UserError(f"config 'data': {err}") from None
 

@@ -13,10 +13,11 @@ from lightning.pytorch.utilities import rank_zero_warn
 
 from nvs import metrics as M
 from nvs.errors import UserError
+from nvs.gather import gather_rows, gather_sum
 from nvs.types import Batch
 
 
-class NonFiniteLossError(RuntimeError):
+class NonFiniteLossError(UserError, RuntimeError):
     """Raised when the training loss becomes NaN/Inf and the guard is set to stop."""
 
 
@@ -49,6 +50,7 @@ class NVSModule(L.LightningModule):
         # What the enabled losses read, fixed at build time.
         self.train_needs = frozenset().union(*(term.needs for term in losses.values())) if losses else frozenset()
         self.test_rows: list[dict] = []
+        self._val_rows: list[dict] = []
         self.test_forward_s = 0.0
         self._constant_terms_warned = False
         if channels_last:
@@ -94,7 +96,7 @@ class NVSModule(L.LightningModule):
             raise NonFiniteLossError(
                 f"non-finite training loss at step {self.global_step} "
                 f"({', '.join(f'{n}' for n in self.losses)}); the last good checkpoint is kept. "
-                "Set module.nonfinite=skip to drop such steps instead.")
+                "Set nonfinite=skip to drop such steps instead.")
         return total
 
     def _warn_constant_terms(self, values: dict[str, torch.Tensor]) -> None:
@@ -107,9 +109,28 @@ class NVSModule(L.LightningModule):
 
     def validation_step(self, batch: Batch, batch_idx: int):
         out = self(batch)
-        bs = batch["src"].shape[0]
+        values = {name: M.IMAGE_METRICS[name](out["rgb"].float(), batch["tgt"]) for name in self.val_metrics}
+        for i, index in enumerate(self._indices(batch, len(self._val_rows))):
+            self._val_rows.append({"index": index, **{k: float(v[i]) for k, v in values.items()}})
+
+    def on_validation_epoch_start(self):
+        self._val_rows = []
+
+    def on_validation_epoch_end(self):
+        # Means over the pairs of every rank, each once (DistributedSampler padding dropped); identical on every
+        # rank, and reduced across ranks all the same so that checkpoint selection never sees one shard.
+        rows = gather_rows(self._val_rows)
+        self._val_rows = []
         for name in self.val_metrics:
-            self.log(f"val/{name}", M.IMAGE_METRICS[name](out["rgb"].float(), batch["tgt"]).mean(), batch_size=bs)
+            mean = sum(r[name] for r in rows) / len(rows) if rows else float("nan")
+            self.log(f"val/{name}", torch.tensor(mean, device=self.device), sync_dist=True)
+
+    @staticmethod
+    def _indices(batch: Batch, start: int) -> list[int]:
+        """Each item's position in its split (batches built outside the datamodule: in arrival order)."""
+        if "index" in batch:
+            return [int(i) for i in batch["index"]]
+        return list(range(start, start + batch["src"].shape[0]))
 
     def test_step(self, batch: Batch, batch_idx: int):
         if self.device.type == "cuda":
@@ -122,10 +143,16 @@ class NVSModule(L.LightningModule):
         depth_gt = batch.get("depth_tgt")
         depth_pred = out.get("depth") if depth_gt is not None else None
         values = M.compute_all(out["rgb"].float(), batch["tgt"], depth_pred, depth_gt)
-        for i in range(batch["src"].shape[0]):
-            row = {"id_src": batch["id_src"][i], "id_tgt": batch["id_tgt"][i]}
+        for i, index in enumerate(self._indices(batch, len(self.test_rows))):
+            row = {"index": index, "id_src": batch["id_src"][i], "id_tgt": batch["id_tgt"][i]}
             row.update({k: float(v[i]) for k, v in values.items()})
             self.test_rows.append(row)
+
+    def on_test_epoch_end(self):
+        # Every rank ends with all the test pairs, once each, in dataset order (nvs.gather).
+        self._test_rows_seen = gather_sum(float(len(self.test_rows)))
+        self.test_forward_s = gather_sum(self.test_forward_s)
+        self.test_rows = gather_rows(self.test_rows)
 
     def on_test_epoch_start(self):
         self.test_rows = []
@@ -139,7 +166,8 @@ class NVSModule(L.LightningModule):
 
     def test_forward_ms_per_image(self) -> float | None:
         """Forward time alone (no metrics) per test pair of the last test epoch."""
-        return 1000 * self.test_forward_s / len(self.test_rows) if self.test_rows else None
+        seen = getattr(self, "_test_rows_seen", None) or len(self.test_rows)  # forwards of all ranks, padding too
+        return 1000 * self.test_forward_s / seen if self.test_rows else None
 
     def test_summary(self) -> dict[str, float]:
         """Mean of every per-image metric over the test pairs (NaN entries, e.g. no valid depth, are ignored), and

@@ -165,10 +165,16 @@ class NVSDataModule(L.LightningDataModule):
     """Train / val / test pair datasets for one dataset root in either format."""
 
     def __init__(self, fmt: Format, camera: Camera, size: int, loader: LoaderSettings, seed: int = 0,
-                 max_delta_azimuth: int = 40):
+                 max_delta_azimuth: int = 40, train_fraction: float = 1.0):
         super().__init__()
         if size % 16:
             raise UserError(f"data.size={size} must be divisible by 16")
+        if (isinstance(train_fraction, bool) or not isinstance(train_fraction, (int, float))
+                or not 0 < train_fraction <= 1):
+            raise UserError(f"data.train_fraction={train_fraction!r}: expected a fraction in (0, 1]")
+        if train_fraction < 1 and not isinstance(fmt, ObjectsFormat):
+            raise UserError("data.train_fraction < 1 is for the objects format (a subset of training models)")
+        self.train_fraction = train_fraction
         self.fmt, self.camera, self.size, self.loader = fmt, camera, size, loader
         self.seed, self.max_delta_azimuth = seed, max_delta_azimuth
         self._sets: dict[str, PairDataset] = {}
@@ -206,6 +212,7 @@ class NVSDataModule(L.LightningDataModule):
             else:
                 models = self.fmt.split_models(split, lo.val_fraction, self.seed)
                 if split == "train":
+                    models = train_subset(models, self.train_fraction, self.seed)
                     sources = [v for m in models for v in self.fmt.views(m)]
                     d = self.max_delta_azimuth
                     return PairDataset(cache, self.camera, sources=sources,
@@ -233,9 +240,19 @@ class NVSDataModule(L.LightningDataModule):
         return self._loader("test", False, self.loader.eval_batch_size)
 
 
+def train_subset(models: list[str], fraction: float, seed: int) -> list[str]:
+    """A seeded subset of round(fraction * n) >= 1 training models (sorted); smaller fractions are nested in larger
+    ones under one seed (a prefix of one seeded order), so a data-scale study adds models as the fraction grows."""
+    if fraction >= 1:
+        return list(models)
+    order = sorted(models)
+    random.Random(f"train_fraction/{seed}").shuffle(order)
+    return sorted(order[: max(1, round(fraction * len(order)))])
+
+
 def build_datamodule(fmt: str, root: str, size: int, camera: dict, loader: dict, seed: int = 0,
                      category: str | None = None, translation_scale: float = 1.0,
-                     max_delta_azimuth: int = 40) -> NVSDataModule:
+                     max_delta_azimuth: int = 40, train_fraction: float = 1.0) -> NVSDataModule:
     """Typed construction from the data config (``fmt`` is 'objects' or 'scenes')."""
     cam = Camera(**camera)
     settings = LoaderSettings(**loader)
@@ -247,7 +264,8 @@ def build_datamodule(fmt: str, root: str, size: int, camera: dict, loader: dict,
         f = ScenesFormat(root, translation_scale)
     else:
         raise UserError(f"data.format={fmt!r}: expected 'objects' or 'scenes'")
-    return NVSDataModule(f, cam, size, settings, seed=seed, max_delta_azimuth=max_delta_azimuth)
+    return NVSDataModule(f, cam, size, settings, seed=seed, max_delta_azimuth=max_delta_azimuth,
+                         train_fraction=train_fraction)
 
 
-__all__ = ["Camera", "LoaderSettings", "NVSDataModule", "PairDataset", "build_datamodule"]
+__all__ = ["Camera", "LoaderSettings", "NVSDataModule", "PairDataset", "build_datamodule", "train_subset"]
