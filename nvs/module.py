@@ -173,7 +173,7 @@ class NVSModule(L.LightningModule):
         """Mean of every per-image metric over the test pairs (NaN entries, e.g. no valid depth, are ignored), and
         for a model that skips warps the fraction of (sample, level) warps it skipped: ``warp_skipped`` over all
         levels, ``warp_skipped_<level>`` per level."""
-        keys = [k for k in (self.test_rows[0] if self.test_rows else {}) if k not in ("id_src", "id_tgt")]
+        keys = [k for k in (self.test_rows[0] if self.test_rows else {}) if k not in ("id_src", "id_tgt", "index")]
         summary = {}
         for k in keys:
             vals = [r[k] for r in self.test_rows if not math.isnan(r[k])]
