@@ -10,6 +10,8 @@ replaces. The rule is by kind, not exact type: a number may replace a number (``
 
 from __future__ import annotations
 
+import difflib
+import re
 from collections.abc import Collection, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -141,3 +143,31 @@ def model_mismatch(asked: Mapping, held: Mapping, prefix: str = "model") -> str 
         elif a != h:
             return f"{prefix}.{key}: the checkpoint has {h!r}, the command asks for {a!r}"
     return None
+
+
+# Trainer arguments that conf/trainer/default.yaml leaves at Lightning's default are still ``trainer.<arg>=...``
+_TRAINER_ARG = re.compile(r"^trainer\.(\w+)=")
+
+
+def trainer_arguments(argv: Sequence[str], conf_dir: str | Path = CONF_DIR) -> list[str]:
+    """Command-line arguments with ``trainer.<arg>=v`` for a Lightning Trainer argument that conf/trainer does not
+    list rewritten to ``++trainer.<arg>=v``, so every Trainer argument is set without '+'. A ``trainer.<key>`` that
+    is no Trainer argument is a UserError naming the closest one (instead of Hydra's hint to append it)."""
+    import inspect
+
+    import lightning as L
+
+    listed = set(OmegaConf.load(Path(conf_dir) / "trainer" / "default.yaml"))
+    known = set(inspect.signature(L.Trainer.__init__).parameters) - {"self", "logger", "callbacks"}
+    out = []
+    for arg in argv:
+        m = _TRAINER_ARG.match(arg)
+        if m and m.group(1) not in listed:
+            name = m.group(1)
+            if name not in known:
+                hint = difflib.get_close_matches(name, known | listed, n=1)
+                raise UserError(f"config 'trainer.{name}': not an argument of lightning.Trainer"
+                                + (f"; did you mean trainer.{hint[0]}?" if hint else ""))
+            arg = "++" + arg
+        out.append(arg)
+    return out

@@ -12,13 +12,15 @@ import hydra
 import lightning as L
 import torch
 from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from nvs.build import build_data, build_module, device_name, git_sha, parameter_count
 from nvs.config_check import check_cli_overrides, model_mismatch
-from nvs.errors import UserError, exits_cleanly
+from nvs.errors import UserError, exits_cleanly, user_message
 from nvs.module import NVSModule
-from nvs.run_files import summary_line, write_metrics, write_per_image
+from nvs.run_files import check_writable, is_global_zero, remove_unstarted_run, summary_line, write_metrics, \
+    write_per_image
 
 
 def load_checkpoint(path: str) -> dict:
@@ -65,13 +67,16 @@ def run_config(cfg: DictConfig) -> tuple[DictConfig, dict | None]:
                                 "nonfinite": "stop", "channels_last": False, "trainer": {"precision": "32-true"}})
     else:
         raise UserError("give ckpt_path=... (a trained model) or model=copy_source|gt_warp (no training)")
-    if cfg.get("data") is not None:
+    data_cli = cfg.get("data") or {}
+    if data_cli.get("format") is not None:  # a data=<name> group: that dataset config
         data = OmegaConf.to_container(cfg.data, resolve=False)
         if "data" in run:
             data["size"] = run.data.size  # the network is built for the size it was trained at
         run.data = data
     elif "data" not in run:
         raise UserError("give data=<chairs|cars|drive|...> for a model without a checkpoint")
+    elif data_cli.get("root") is not None:  # data.root=<dir> alone: the checkpoint's dataset, read from there
+        run.data.root = str(data_cli.root)
     run.seed = int(cfg.seed)
     run.paths = OmegaConf.to_container(cfg.paths, resolve=True)
     if cfg.get("limit"):
@@ -84,13 +89,20 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
     run, ckpt = run_config(cfg)
     L.seed_everything(int(run.seed), workers=True)
     datamodule = build_data(run)
+    datamodule.validate(("test",))
     run.model.image_size = run.data.size
     module = build_module(run)
     if ckpt is not None:
         load_weights(module, ckpt, cfg.ckpt_path)
     precision = cfg.precision or run.trainer.get("precision", "32-true")
-    trainer = L.Trainer(accelerator="auto", devices=1, precision=precision, logger=False,
-                        enable_progress_bar=False, enable_model_summary=False)
+    if is_global_zero():
+        check_writable(out_dir)
+    placement = OmegaConf.to_container(cfg.trainer) if cfg.get("trainer") else {}
+    try:
+        trainer = L.Trainer(**placement, precision=precision, logger=False, enable_progress_bar=False,
+                            enable_model_summary=False)
+    except Exception as err:  # noqa: BLE001 - a placement the Trainer refuses (devices, strategy) is the user's
+        raise UserError(f"config 'trainer': {user_message(err) or f'{err.__class__.__name__}: {err}'}") from None
     t0 = time.perf_counter()
     trainer.test(module, datamodule=datamodule, verbose=False)
     elapsed = time.perf_counter() - t0
@@ -108,17 +120,27 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
         "eval_forward_ms_per_image": module.test_forward_ms_per_image(),
         "test": module.test_summary(),
     }
-    write_per_image(out_dir / "test_per_image.csv", module.test_rows)
-    write_metrics(out_dir / "metrics.json", result)
+    if trainer.is_global_zero:  # the rows are gathered from every rank: one writer
+        write_per_image(out_dir / "test_per_image.csv", module.test_rows)
+        write_metrics(out_dir / "metrics.json", result)
     return result
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
 @exits_cleanly
 def main(cfg: DictConfig) -> None:
-    check_cli_overrides("evaluate", HydraConfig.get().overrides.task)
-    out_dir = Path(cfg.out_dir)
-    result = evaluate(cfg, out_dir)
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    try:
+        check_cli_overrides("evaluate", HydraConfig.get().overrides.task)
+        out_dir = Path(cfg.out_dir)
+        result = evaluate(cfg, out_dir)
+    except BaseException:
+        # A failed evaluation leaves no run directory behind (a multirun job's stays: it is reported at the end).
+        if HydraConfig.get().mode == RunMode.RUN and is_global_zero():
+            remove_unstarted_run(run_dir, HydraConfig.get().job.name)
+        raise
+    if not is_global_zero():
+        return
     print(summary_line(result["test"]))
     print(f"wrote {out_dir / 'metrics.json'} and {out_dir / 'test_per_image.csv'}")
 

@@ -24,7 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from nvs.build import build_data, build_module, device_name, git_sha, parameter_count
 from nvs.checkpoints import AtomicCheckpointIO
-from nvs.config_check import check_cli_overrides
+from nvs.config_check import check_cli_overrides, trainer_arguments
 from nvs.errors import Interrupted, UserError, exits_cleanly, user_message
 from nvs.quiet import silence_known_noise
 from nvs.run_files import check_writable, is_global_zero, remove_unstarted_run, summary_line, write_metrics, \
@@ -287,6 +287,18 @@ def _fit_and_test(cfg, out_dir, trainer, module, datamodule, callbacks, throughp
     return result
 
 
+def main_cli() -> None:
+    """``python -m nvs.train``: every Lightning Trainer argument is ``trainer.<arg>=...`` (nvs.config_check)."""
+    import sys
+
+    try:
+        sys.argv[1:] = trainer_arguments(sys.argv[1:])
+    except UserError as err:
+        print(f"error: {err}", file=sys.stderr)
+        sys.exit(2)
+    main()
+
+
 @hydra.main(version_base="1.3", config_path="../conf", config_name="train")
 @exits_cleanly
 def main(cfg: DictConfig) -> None:
@@ -310,4 +322,4 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    main_cli()
