@@ -946,6 +946,10 @@ def run(argv: list[str] | None = None) -> int:
     root = Path(args.collect_only) if args.collect_only else Path(args.runs) / study.scale
     if args.collect_only and not root.is_dir():
         raise UserError(f"--collect-only {root}: no such directory")
+    if not args.dry_run:  # before any job runs: the tables must have somewhere to go
+        from nvs.run_files import check_writable
+
+        check_writable(args.results)
     jobs = plan(study, root, extra)
     launching = [] if args.collect_only else to_launch(jobs, retry_failed=not args.skip_failed, force=args.force)
     _print_plan(jobs, launching)
