@@ -8,21 +8,22 @@ from __future__ import annotations
 import re
 import tempfile
 import zipfile
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 from PIL import Image
 
-from nvs.data.render.ac3d import read_ac3d, triangles
+from nvs.data.render import flightgear, ufoai
 from nvs.data.render.scene import Part
+from nvs.data.render.sources import ModelSource, ac3d_parts, read_texture, slug  # noqa: F401 (re-exported)
 
 SH3D_DIR = Path("/usr/share/sweethome3d/furniture")
 TORCS_DIR = Path("/usr/share/games/torcs")
 TRIGGER_ZIP = Path("/usr/share/games/trigger-rally/data.zip")
 COPYRIGHT = {p: Path(f"/usr/share/doc/{p}/copyright")
              for p in ("sweethome3d-furniture", "torcs-data", "trigger-rally-data")}
+COPYRIGHT.update({flightgear.PACKAGE: flightgear.COPYRIGHT, ufoai.PACKAGE: ufoai.COPYRIGHT})
 INSTALL_HINT = "install the asset packages with scripts/install_assets.sh"
 
 # ShapeNet's chair class holds chairs, armchairs, stools and lounge chairs; sofas and benches are other classes.
@@ -30,23 +31,6 @@ _SEAT = re.compile(r"chair|stool|\bseat\b", re.I)
 _NOT_SEAT = re.compile(r"wheelchair", re.I)
 # ShapeNet's car class: cars, SUVs, vans; not trucks, buses, toys.
 _NOT_CAR = re.compile(r"truck|bus\b|model", re.I)
-
-
-@dataclass
-class ModelSource:
-    """A model to render: id (no '_'), display name, Debian package, licence/credit line, loader."""
-
-    id: str
-    name: str
-    package: str
-    licence: str
-    credit: str
-    load: Callable[[], list[Part]]
-
-
-def slug(*words: str) -> str:
-    s = "-".join(words).lower()
-    return re.sub(r"[^a-z0-9]+", "-", s).strip("-")
 
 
 # --- Sweet Home 3D catalogs -------------------------------------------------------------------------------------
@@ -148,50 +132,6 @@ def sh3d_models(kind: str) -> list[ModelSource]:
 
 
 # --- TORCS cars (AC3D) ------------------------------------------------------------------------------------------
-
-def read_texture(name: str, dirs: list[Path]) -> Image.Image | None:
-    """A texture by file name, looked up in dirs; SGI .rgb and PNG, with the other extension as a fallback."""
-    stem = Path(name).stem
-    for d in dirs:
-        for cand in (name, f"{stem}.png", f"{stem}.rgb", f"{stem}.rgba"):
-            p = d / cand
-            if p.is_file():
-                with Image.open(p) as im:
-                    im.load()
-                    return im.convert("RGBA")
-    return None
-
-
-def ac3d_parts(path: Path, texture_dirs: list[Path], keep=lambda obj: True) -> list[Part]:
-    """AC3D file -> parts merged per texture (untextured objects per material colour)."""
-    model = read_ac3d(path)
-    images: dict[str, Image.Image | None] = {}
-    groups: dict[tuple, list] = {}
-    for obj in model.objects:
-        if not keep(obj):
-            continue
-        for s in obj.surfaces:
-            tri = triangles(s)
-            if len(tri) == 0:
-                continue
-            if obj.texture and obj.texture not in images:
-                images[obj.texture] = read_texture(obj.texture, texture_dirs)
-            img = images.get(obj.texture) if obj.texture else None
-            key = ("tex", obj.texture) if img is not None else ("mat", min(s.mat, len(model.material_rgb) - 1))
-            corners = tri.reshape(-1)
-            groups.setdefault(key, []).append((obj.vertices[s.refs[corners]], s.uvs[corners]))
-    parts = []
-    for key, chunks in groups.items():
-        pos = np.concatenate([c[0] for c in chunks])
-        uv = np.concatenate([c[1] for c in chunks])
-        faces = np.arange(len(pos)).reshape(-1, 3)
-        if key[0] == "tex":
-            parts.append(Part(pos, faces, uv, images[key[1]], np.ones(4)))
-        else:
-            rgb = model.material_rgb[key[1]]
-            parts.append(Part(pos, faces, None, None, np.array([*rgb, 1.0])))
-    return parts
-
 
 # TORCS car files are y up with the car's front towards +x: rotate +x to +z (x' = -z, z' = x).
 _TORCS_TO_CANON = np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
@@ -305,11 +245,15 @@ def trigger_models() -> list[ModelSource]:
 
 
 def category_models(category: str) -> list[ModelSource]:
-    """All candidate models of 'chairs' or 'cars', sorted by id."""
+    """All candidate models of 'chairs' or 'cars' whose packages are present, sorted by id.
+
+    FlightGear and UFO:AI models are there only after scripts/install_object_assets.sh (the full sets).
+    """
     if category == "chairs":
         models = sh3d_models("chairs")
     elif category == "cars":
         models = sh3d_models("cars") + torcs_models() + trigger_models()
     else:
         raise ValueError(f"unknown object category {category!r}")
+    models += flightgear.flightgear_models(category) + ufoai.ufoai_models(category)
     return sorted(models, key=lambda m: m.id)

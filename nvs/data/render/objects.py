@@ -7,6 +7,7 @@ minus c: x right, y down, z away from that camera, so view (0, 0) shows the mode
 
 from __future__ import annotations
 
+import hashlib
 import random
 import time
 import traceback
@@ -93,11 +94,21 @@ def eval_pairs(test_models: list[str], per_model: int, seed: int) -> list[tuple[
     return pairs
 
 
-def _render_model(renderer: Renderer, root: Path, source: ModelSource, factor: int) -> int:
-    """Render the 54 views of one model; returns the number of views written."""
-    parts = normalised(source.load())
+def geometry_signature(parts: list[Part]) -> str:
+    """Hash of a normalised model's vertex set on a 1e-4 grid: equal for identical geometry, whatever the texture."""
+    pts = np.concatenate([p.positions[p.faces.reshape(-1)] for p in parts if len(p.faces)])
+    grid = np.unique(np.round(pts * 1e4).astype(np.int64), axis=0)
+    return hashlib.sha1(grid.tobytes()).hexdigest()
+
+
+def _signature_path(root: Path, model: str) -> Path:
+    return root / "signatures" / f"{model}.txt"
+
+
+def _render_model(renderer: Renderer, root: Path, model: str, parts: list[Part], factor: int) -> int:
+    """Render the 54 views of one normalised model; returns the number of views written."""
     renderer.set_mesh(to_pyrender(parts))
-    for stem, az, el in view_stems(source.id):
+    for stem, az, el in view_stems(model):
         rgb, depth = supersampled(renderer, camera_to_object(az, el), factor)
         write_depth(root / "depth" / f"{stem}.npy", depth)
         write_png(root / "images" / f"{stem}.png", rgb)
@@ -119,6 +130,8 @@ def render_objects(category: str, out: Path, size: int = 256, seed: int = 0, max
     renderer = Renderer(size * supersample, scaled_K(K256, size * supersample), znear=0.5, zfar=4.0, lit=True)
     used: list[ModelSource] = []
     failed: list[tuple[str, str]] = []
+    duplicates: dict[str, str] = {}  # model -> the model with identical geometry that is used instead
+    seen: dict[str, str] = {}  # geometry signature -> model
     skipped = views = 0
     t0 = time.perf_counter()
     bar = tqdm(total=want, desc=f"render {category} {size}px", unit="model", disable=not progress)
@@ -126,13 +139,25 @@ def render_objects(category: str, out: Path, size: int = 256, seed: int = 0, max
         for source in order:
             if len(used) >= want:
                 break
-            if is_done(out, source.id):
-                used.append(source)
-                skipped += 1
-                bar.update(1)
-                continue
             try:
-                views += _render_model(renderer, out, source, supersample)
+                # The signature is cached beside the views so that a re-run need not load finished models.
+                sig_file = _signature_path(out, source.id)
+                parts = None
+                if sig_file.is_file():
+                    sig = sig_file.read_text().strip()
+                else:
+                    parts = normalised(source.load())
+                    sig = geometry_signature(parts)
+                    write_text(sig_file, sig + "\n")
+                if sig in seen:
+                    duplicates[source.id] = seen[sig]
+                    continue
+                if is_done(out, source.id):
+                    skipped += 1
+                else:
+                    parts = normalised(source.load()) if parts is None else parts
+                    views += _render_model(renderer, out, source.id, parts, supersample)
+                seen[sig] = source.id
                 used.append(source)
                 bar.update(1)
             except Exception as err:  # a broken model must not stop the dataset; it is named and skipped
@@ -173,11 +198,14 @@ def render_objects(category: str, out: Path, size: int = 256, seed: int = 0, max
         "models": [{"id": i, "name": by_id[i].name, "package": by_id[i].package, "licence": by_id[i].licence,
                     "credit": by_id[i].credit} for i in ids],
         "failed": [{"id": i, "error": e} for i, e in failed],
+        "duplicates": [{"id": i, "same_geometry_as": j} for i, j in sorted(duplicates.items())],
+        "models_per_package": {p: sum(by_id[i].package == p for i in ids) for p in packages},
         "render_seconds": round(seconds, 2),
         "views_rendered": views,
     }
     write_json(out / "meta.json", meta)
-    print(f"{category}: used {len(ids)} models ({skipped} already rendered), failed {len(failed)}"
+    print(f"{category}: used {len(ids)} models ({skipped} already rendered), {len(duplicates)} duplicates, "
+          f"failed {len(failed)}"
           + (f" ({', '.join(i for i, _ in failed)})" if failed else "")
           + f"; {views} views in {seconds:.1f} s" + (f" ({1000 * seconds / views:.1f} ms/view)" if views else ""))
     return meta

@@ -1,0 +1,80 @@
+"""What every object source shares: the ModelSource record, ids, the extracted-assets folder, AC3D -> parts."""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from PIL import Image
+
+from nvs.data.render.ac3d import read_ac3d, triangles
+from nvs.data.render.scene import Part
+
+# Packages too large to install (flightgear-data-base, ufoai-data) are extracted here, their own paths kept, by
+# scripts/install_object_assets.sh.
+ASSET_DIR = Path(__file__).resolve().parents[3] / "data" / "assets"
+
+
+@dataclass
+class ModelSource:
+    """A model to render: id (no '_'), display name, Debian package, licence/credit line, loader."""
+
+    id: str
+    name: str
+    package: str
+    licence: str
+    credit: str
+    load: Callable[[], list[Part]]
+
+
+def slug(*words: str) -> str:
+    s = "-".join(words).lower()
+    return re.sub(r"[^a-z0-9]+", "-", s).strip("-")
+
+
+
+def read_texture(name: str, dirs: list[Path]) -> Image.Image | None:
+    """A texture by file name, looked up in dirs; SGI .rgb and PNG, with the other extension as a fallback."""
+    stem = Path(name).stem
+    for d in dirs:
+        for cand in (name, f"{stem}.png", f"{stem}.rgb", f"{stem}.rgba"):
+            p = d / cand
+            if p.is_file():
+                with Image.open(p) as im:
+                    im.load()
+                    return im.convert("RGBA")
+    return None
+
+
+def ac3d_parts(path: Path, texture_dirs: list[Path], keep=lambda obj: True) -> list[Part]:
+    """AC3D file -> parts merged per texture (untextured objects per material colour)."""
+    model = read_ac3d(path)
+    images: dict[str, Image.Image | None] = {}
+    groups: dict[tuple, list] = {}
+    for obj in model.objects:
+        if not keep(obj):
+            continue
+        for s in obj.surfaces:
+            tri = triangles(s)
+            if len(tri) == 0:
+                continue
+            if obj.texture and obj.texture not in images:
+                images[obj.texture] = read_texture(obj.texture, texture_dirs)
+            img = images.get(obj.texture) if obj.texture else None
+            key = ("tex", obj.texture) if img is not None else ("mat", min(s.mat, len(model.material_rgb) - 1))
+            corners = tri.reshape(-1)
+            groups.setdefault(key, []).append((obj.vertices[s.refs[corners]], s.uvs[corners]))
+    parts = []
+    for key, chunks in groups.items():
+        pos = np.concatenate([c[0] for c in chunks])
+        uv = np.concatenate([c[1] for c in chunks])
+        faces = np.arange(len(pos)).reshape(-1, 3)
+        if key[0] == "tex":
+            parts.append(Part(pos, faces, uv, images[key[1]], np.ones(4)))
+        else:
+            rgb = model.material_rgb[key[1]]
+            parts.append(Part(pos, faces, None, None, np.array([*rgb, 1.0])))
+    return parts
