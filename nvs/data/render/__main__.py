@@ -4,6 +4,7 @@ Objects: size=256 out=data/<category>_<size> seed=0 max_models=N supersample=3 p
 Drive:   size=256 out=data/drive_<size> seed=0 sequences=10 frames=200 supersample=3
          sources=stk,trigger,torcs camera=kitti|wide
 Contact: out=docs/contact_sheet.png chairs=DIR cars=DIR drive=DIR models=4 size=128
+Sheets:  root=DIR (a rendered chairs/cars root) out=docs/contact size=64: one sheet per source package
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ _KEYS = {
     "cars": {"size", "out", "seed", "max_models", "supersample", "pairs_per_model"},
     "drive": {"size", "out", "seed", "sequences", "frames", "supersample", "sources", "camera"},
     "contact": {"out", "chairs", "cars", "drive", "models", "size"},
+    "sheets": {"root", "out", "size"},
 }
 
 
@@ -45,6 +47,17 @@ def parse(argv: list[str]) -> tuple[str, dict]:
 @exits_cleanly
 def main(argv: list[str] | None = None) -> None:
     what, opts = parse(sys.argv[1:] if argv is None else argv)
+    if what == "sheets":
+        from nvs.data.render.contact import write_source_sheets
+
+        if "root" not in opts:
+            raise UserError("sheets needs root=DIR (a rendered chairs or cars root)")
+        try:
+            paths = write_source_sheets(Path(opts["root"]), Path(opts.get("out", "docs/contact")), opts.get("size", 64))
+        except FileNotFoundError as err:
+            raise UserError(str(err)) from None
+        print("wrote " + " ".join(str(p) for p in paths))
+        return
     if what == "contact":
         from nvs.data.render.contact import write_contact_sheet
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import json
 from pathlib import Path
 
 import numpy as np
@@ -66,3 +67,47 @@ def write_contact_sheet(out: Path, chairs: Path | None, cars: Path | None, drive
     contact_sheet(rows, size).save(buf, format="PNG", optimize=True)
     write_bytes(out, buf.getvalue())
     return Path(out)
+
+
+SOURCE_AZIMUTHS = (0, 60, 180)
+
+
+def _model_cell(root: Path, model: str, size: int, elevation: int = 20) -> Image.Image:
+    """One model: its id above views at SOURCE_AZIMUTHS (view (0, el) first: the model's front)."""
+    label = 14
+    cell = Image.new("RGB", (len(SOURCE_AZIMUTHS) * size, size + label), (255, 255, 255))
+    ImageDraw.Draw(cell).text((3, 1), model[:len(SOURCE_AZIMUTHS) * size // 6], fill=(0, 0, 0))
+    for c, az in enumerate(SOURCE_AZIMUTHS):
+        cell.paste(_tile(root / "images" / f"{model}_{az}_{elevation}.png", size), (c * size, label))
+    return cell
+
+
+def source_sheet(root: Path, models: list[str], size: int = 64, per_row: int = 4) -> Image.Image:
+    """Every model of `models` as a cell (id, views at SOURCE_AZIMUTHS), `per_row` cells per row."""
+    cells = [_model_cell(root, m, size) for m in models]
+    w, h = cells[0].size
+    rows = (len(cells) + per_row - 1) // per_row
+    sheet = Image.new("RGB", (min(per_row, len(cells)) * w, rows * h), (255, 255, 255))
+    for i, cell in enumerate(cells):
+        sheet.paste(cell, ((i % per_row) * w, (i // per_row) * h))
+    return sheet
+
+
+def write_source_sheets(root: Path, out_dir: Path, size: int = 64) -> list[Path]:
+    """One PNG per source package of an object root (from its meta.json): <out_dir>/<category>_<package>.png."""
+    root = Path(root)
+    meta_path = root / "meta.json"
+    if not meta_path.is_file():
+        raise FileNotFoundError(f"{meta_path}: not a rendered object root (no meta.json)")
+    meta = json.loads(meta_path.read_text())
+    by_package: dict[str, list[str]] = {}
+    for m in meta["models"]:
+        by_package.setdefault(m["package"], []).append(m["id"])
+    written = []
+    for package, models in sorted(by_package.items()):
+        buf = io.BytesIO()
+        source_sheet(root, sorted(models), size).save(buf, format="PNG", optimize=True)
+        path = Path(out_dir) / f"{meta['category']}s_{package}.png"
+        write_bytes(path, buf.getvalue())
+        written.append(path)
+    return written
