@@ -26,13 +26,13 @@ def depth_to_grey(depth: torch.Tensor, span: tuple[float, float] | None = None) 
 def image_grid(columns: list[torch.Tensor], scale: int = 1, pad: int = 2) -> torch.Tensor:
     """Columns of (B,C,H,W) images (C=3 in [0,1], or C=1 depth, drawn grey) -> (3, B*(H+pad)+pad, N*(W+pad)+pad).
 
-    Row b holds sample b of every column; white padding between tiles; tiles upscaled ``scale``x (nearest).
+    Row b holds sample b of every column; dark grey padding between tiles (the renders are on white); tiles upscaled ``scale``x (nearest).
     """
     tiles = [depth_to_grey(c) if c.shape[1] == 1 else c.float().clamp(0, 1) for c in columns]
     if scale > 1:
         tiles = [F.interpolate(t, scale_factor=scale, mode="nearest") for t in tiles]
     B, _, H, W = tiles[0].shape
-    grid = torch.ones(3, B * (H + pad) + pad, len(tiles) * (W + pad) + pad)
+    grid = torch.full((3, B * (H + pad) + pad, len(tiles) * (W + pad) + pad), 0.25)
     for j, t in enumerate(tiles):
         for b in range(B):
             y, x = pad + b * (H + pad), pad + j * (W + pad)

@@ -4,6 +4,8 @@ GET  /                  the page (static/index.html; static/viewer.js, static/vi
 GET  /api/info          model, controls (axes and trained ranges) and the gallery (PNG data URLs)
 GET  /api/view?source=<key>&<axis>=<value>...   one view: {rgb, depth (PNG data URLs), depth_range, model_ms, ...}
 POST /api/upload        multipart form field 'image' -> a new source {key, label, image, initial}
+GET  /api/ply?source=<key>&<axis>=<value>...    the view's predicted depth as a coloured point cloud (PLY download)
+GET  /api/video?source=<key>&path=orbit|forward&frames=N&fps=F   {gif, mp4 (data URLs), frames, ms} (nvs/viewer/video.py)
 Errors are JSON {"error": message} with status 400 (bad input), 413 (file too large) or 500; the server keeps running.
 Model work runs on one worker thread, so the event loop stays free and views are computed one at a time.
 """
@@ -11,6 +13,7 @@ Model work runs on one worker thread, so the event loop stays free and views are
 from __future__ import annotations
 
 import asyncio
+import base64
 import errno
 import ipaddress
 import logging
@@ -23,12 +26,17 @@ import torch
 from aiohttp import web
 
 from nvs.errors import UserError
+from nvs.pointcloud import ply_bytes
+from nvs.viewer.cloud import file_stem, view_points
 from nvs.viewer.controls import describe
 from nvs.viewer.images import png_data_url, to_uint8
+from nvs.viewer.paths import camera_path
 from nvs.viewer.session import Source, ViewSession
+from nvs.viewer.video import compose_frames, render_views, video_bytes
 
 STATIC = Path(__file__).with_name("static")
 MAX_UPLOAD_MB = 20
+MAX_VIDEO_FRAMES = 240  # a button press renders at most this many views
 log = logging.getLogger(__name__)
 
 SESSION = web.AppKey("session", ViewSession)
@@ -62,12 +70,14 @@ async def info(request: web.Request) -> web.Response:
     return web.json_response(request.app[INFO])
 
 
-async def view(request: web.Request) -> web.Response:
-    session = request.app[SESSION]
-    query = request.query
-    key = query.get("source")
+def _source_key(request: web.Request) -> str:
+    key = request.query.get("source")
     if not key:
         raise UserError("no source given")
+    return key
+
+
+def _pose_values(session: ViewSession, query) -> dict[str, float]:
     values = {}
     for ax in session.controls.axes:
         try:
@@ -76,7 +86,61 @@ async def view(request: web.Request) -> web.Response:
             raise UserError(f"missing pose value '{ax.name}'") from None
         except ValueError:
             raise UserError(f"{ax.name}={query[ax.name]!r} is not a number") from None
+    return values
+
+
+def _int_param(query, name: str, default: int, lo: int, hi: int) -> int:
+    try:
+        value = int(query.get(name, default))
+    except ValueError:
+        raise UserError(f"{name}={query[name]!r} is not a whole number") from None
+    if not lo <= value <= hi:
+        raise UserError(f"{name}={value}: expected {lo}..{hi}")
+    return value
+
+
+async def view(request: web.Request) -> web.Response:
+    session = request.app[SESSION]
+    key = _source_key(request)
+    values = _pose_values(session, request.query)
     return web.json_response(await _in_worker(request, view_json, session, key, values))
+
+
+def ply_download(session: ViewSession, key: str, values: dict[str, float]) -> tuple[bytes, str]:
+    """The view's point cloud as PLY bytes and a file name (on the worker thread)."""
+    xyz, rgb, comments = view_points(session, key, values)
+    return ply_bytes(xyz, rgb, comments), file_stem(session.source(key).label, values) + ".ply"
+
+
+async def ply(request: web.Request) -> web.Response:
+    session = request.app[SESSION]
+    key = _source_key(request)
+    values = _pose_values(session, request.query)
+    body, name = await _in_worker(request, ply_download, session, key, values)
+    return web.Response(body=body, content_type="application/octet-stream",
+                        headers={"Content-Disposition": f'attachment; filename="{name}"'})
+
+
+def video_json(session: ViewSession, key: str, path: str, frames: int, fps: int) -> dict:
+    """Render the path and encode both formats (on the worker thread)."""
+    t0 = time.perf_counter()
+    source = session.source(key)
+    poses = camera_path(path, session.controls, source.meta, frames)
+    clips = video_bytes(compose_frames(render_views(session, key, poses, progress=False)), fps)
+    return {"gif": "data:image/gif;base64," + base64.b64encode(clips["gif"]).decode("ascii"),
+            "mp4": "data:video/mp4;base64," + base64.b64encode(clips["mp4"]).decode("ascii"),
+            "frames": len(poses), "ms": 1000 * (time.perf_counter() - t0)}
+
+
+async def video(request: web.Request) -> web.Response:
+    session = request.app[SESSION]
+    key = _source_key(request)
+    path = request.query.get("path", "orbit")
+    if path not in ("orbit", "forward"):
+        raise UserError(f"path={path!r}: the page renders orbit or forward (custom paths: python -m nvs.render_video)")
+    frames = _int_param(request.query, "frames", 48, 2, MAX_VIDEO_FRAMES)
+    fps = _int_param(request.query, "fps", 12, 1, 60)
+    return web.json_response(await _in_worker(request, video_json, session, key, path, frames, fps))
 
 
 async def upload(request: web.Request) -> web.Response:
@@ -111,6 +175,7 @@ def build_app(session: ViewSession, meta: dict, threads: int | None = None) -> w
     app = web.Application(client_max_size=MAX_UPLOAD_MB * 2**20, middlewares=[json_errors])
     app[SESSION] = session
     app[INFO] = {**meta, "image_size": session.image_size, "controls": describe(session.controls),
+                 "paths": ["orbit", "forward"] if session.controls.kind == "scene" else ["orbit"],
                  "gallery": [source_json(session, s) for s in session.gallery.values()]}
     app[EXECUTOR] = ThreadPoolExecutor(1, thread_name_prefix="nvs-viewer",
                                        initializer=torch.set_num_threads if threads else None,
@@ -124,6 +189,8 @@ def build_app(session: ViewSession, meta: dict, threads: int | None = None) -> w
     app.router.add_get("/api/info", info)
     app.router.add_get("/api/view", view)
     app.router.add_post("/api/upload", upload)
+    app.router.add_get("/api/ply", ply)
+    app.router.add_get("/api/video", video)
     app.router.add_static("/static", STATIC)
     return app
 

@@ -44,6 +44,7 @@ class View:
     model_ms: float  # encoder (when it ran) + pose step + copy to uint8, wall clock
     model_cpu_ms: float  # CPU time of the calling thread for the same work (all of it when torch runs 1 thread)
     encoded: bool  # the encoder ran for this view (a source not seen recently)
+    depth_values: np.ndarray | None = None  # (S,S) float32 predicted depth (pose units), for videos and point clouds
 
 
 class ViewSession:
@@ -127,4 +128,6 @@ class ViewSession:
             rgb = to_uint8(out["rgb"][0])
             depth = out.get("depth")
             grey, span = depth_to_uint8(depth[0]) if depth is not None else (None, None)
-        return View(rgb, grey, span, 1000 * (time.perf_counter() - t0), 1000 * (time.thread_time() - cpu0), fresh)
+            values = depth[0, 0].float().cpu().numpy() if depth is not None else None
+        return View(rgb, grey, span, 1000 * (time.perf_counter() - t0), 1000 * (time.thread_time() - cpu0), fresh,
+                    values)

@@ -111,8 +111,7 @@ function requestView() {
   }
   state.busy = true;
   document.body.dataset.busy = "true";
-  const params = new URLSearchParams({ source: state.source.key });
-  for (const [name, value] of Object.entries(state.values)) params.set(name, String(value));
+  const params = poseParams();
   const t0 = performance.now();
   fetchJSON(`/api/view?${params}`)
     .then(async (view) => {
@@ -191,6 +190,53 @@ function setUpUpload() {
   });
 }
 
+function poseParams() {
+  const params = new URLSearchParams({ source: state.source.key });
+  for (const [name, value] of Object.entries(state.values)) params.set(name, String(value));
+  return params;
+}
+
+function setUpExport(paths) {
+  // The point cloud is a plain download of /api/ply at the current pose; a video is rendered on the server (the
+  // views one at a time, like every other request) and shown here as a GIF with download links.
+  $("ply-button").addEventListener("click", () => {
+    if (!state.source) return;
+    const link = document.createElement("a");
+    link.href = `/api/ply?${poseParams()}`;
+    link.download = "";
+    document.body.append(link);
+    link.click();
+    link.remove();
+  });
+  for (const path of paths) $("video-path").append(new Option(path, path));
+  $("video-button").addEventListener("click", async () => {
+    if (!state.source) return;
+    const params = new URLSearchParams({ source: state.source.key, path: $("video-path").value,
+                                         frames: $("video-frames").value, fps: $("video-fps").value });
+    $("video-button").disabled = true;
+    document.body.dataset.video = "rendering";
+    $("video-note").textContent = `rendering ${params.get("frames")} frames…`;
+    try {
+      const clip = await fetchJSON(`/api/video?${params}`);
+      $("video").src = clip.gif;
+      $("video-gif").href = clip.gif;
+      $("video-mp4").href = clip.mp4;
+      const stem = `${params.get("path")}_${state.source.label}`.replace(/[^A-Za-z0-9_.-]+/g, "_");
+      $("video-gif").download = `${stem}.gif`;
+      $("video-mp4").download = `${stem}.mp4`;
+      $("video-figure").hidden = false;
+      $("video-note").textContent = `${clip.frames} frames in ${(clip.ms / 1000).toFixed(1)} s`;
+      clearError();
+    } catch (err) {
+      $("video-note").textContent = "";
+      showError(`Video failed: ${err.message}`);
+    } finally {
+      $("video-button").disabled = false;
+      document.body.dataset.video = "done";
+    }
+  });
+}
+
 async function init() {
   try {
     const info = await fetchJSON("/api/info");
@@ -203,6 +249,7 @@ async function init() {
     for (const source of info.gallery) addToGallery(source);
     setUpDrag();
     setUpUpload();
+    setUpExport(info.paths);
     selectSource(info.gallery[0]);
   } catch (err) {
     showError(err.message);

@@ -1,0 +1,46 @@
+"""python -m nvs.render_video ckpt_path=... [source=...] path=orbit|forward|custom frames=N fps=F: MP4 and GIF of the
+synthesised views along a camera path, the predicted depth beside each view (conf/render_video.yaml)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig
+
+from nvs.config_check import check_cli_overrides
+from nvs.errors import UserError, exits_cleanly
+from nvs.quiet import silence_known_noise
+from nvs.viewer.build import build_session, pick_source, source_ids
+from nvs.viewer.cloud import file_stem
+from nvs.viewer.paths import camera_path
+from nvs.viewer.video import compose_frames, render_views, write_video
+
+
+def render(cfg: DictConfig) -> list[Path]:
+    """Render the video(s) the config asks for; returns the files written."""
+    if not isinstance(cfg.fps, (int, float)) or cfg.fps <= 0:
+        raise UserError(f"fps={cfg.fps!r}: expected a positive number")
+    if not isinstance(cfg.scale, int) or cfg.scale < 1:
+        raise UserError(f"scale={cfg.scale!r}: expected a positive integer")
+    session, _ = build_session(cfg, source_ids(cfg.source))
+    source = pick_source(session, cfg.source)
+    poses = camera_path(str(cfg.path), session.controls, source.meta, cfg.frames, cfg.custom)
+    views = render_views(session, source.key, poses, progress=bool(cfg.progress))
+    frames = compose_frames(views, scale=int(cfg.scale))
+    name = cfg.name or f"{cfg.path}_{file_stem(source.label)}"
+    return write_video(Path(cfg.out_dir) / name, frames, float(cfg.fps), list(cfg.formats))
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="render_video")
+@exits_cleanly
+def main(cfg: DictConfig) -> None:
+    check_cli_overrides("render_video", HydraConfig.get().overrides.task)
+    silence_known_noise()
+    for path in render(cfg):
+        print(f"wrote {path} ({path.stat().st_size / 1024:.0f} KB)")
+
+
+if __name__ == "__main__":
+    main()
