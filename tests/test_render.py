@@ -59,7 +59,7 @@ def rendered(tmp_path_factory):
                                  sources=_sources("chairs", CHAIRS) + [_broken()]),
         "cars": render_objects("cars", base / "cars", size=SIZE, max_models=3, progress=False,
                                sources=_sources("cars", CARS)),
-        "drive": render_drive(base / "drive", size=SIZE, sequences=3, frames=12, progress=False),
+        "drive": render_drive(base / "drive", size=SIZE, sequences=3, frames=12, sources="torcs", progress=False),
     }
     return base, metas
 
@@ -197,7 +197,8 @@ def test_splits_and_pairs_are_deterministic(tmp_path):
     for d in ("a", "b"):
         render_objects("chairs", tmp_path / d / "chairs", size=16, supersample=1, max_models=3, progress=False,
                        sources=_sources("chairs", CHAIRS))
-        render_drive(tmp_path / d / "drive", size=16, supersample=1, sequences=3, frames=9, progress=False)
+        render_drive(tmp_path / d / "drive", size=16, supersample=1, sequences=3, frames=9, sources="torcs",
+                     progress=False)
     files = ["chairs/id_train.txt", "chairs/id_val.txt", "chairs/id_test.txt", "chairs/eval_chair_40.txt",
              "drive/poses.txt", "drive/pairs_train.txt", "drive/pairs_val.txt", "drive/eval_kitti.txt"]
     for f in files:

@@ -2,7 +2,7 @@
 
 Objects: size=256 out=data/<category>_<size> seed=0 max_models=N supersample=3 pairs_per_model=30
 Drive:   size=256 out=data/drive_<size> seed=0 sequences=10 frames=200 supersample=3
-         sources=stk,trigger,torcs camera=kitti|wide
+         sources=stk:2,torcs camera=kitti|wide
 Contact: out=docs/contact_sheet.png chairs=DIR cars=DIR drive=DIR models=4 size=128
 Sheets:  root=DIR (a rendered chairs/cars root) out=docs/contact size=64: one sheet per source package
 """

@@ -1,11 +1,11 @@
 """Render driving sequences through game scenes into the KITTI-odometry format read by nvs.data.kitti.
 
-Sources (`sources=` option, comma-separated; round-robin over sources, then over each source's scenes):
+Sources (`sources=` option, comma-separated, `name:k` takes k sequences per turn; round-robin over sources,
+then over each source's scenes):
   stk      SuperTuxKart race tracks (nvs.data.render.stk): town streets, temples, mansions, forests; the
            centre line is the driveline (quads.xml); scripts/install_drive_assets.sh extracts the data.
   torcs    TORCS road tracks (AC3D): the centre line comes from the mesh: road-surface objects `TKMN*` are
            triangle strips whose vertex pairs are road cross-sections.
-  trigger  Trigger Rally stages (nvs.data.render.trigger): heightmap terrain, the road mask's centre line.
 
 The camera (OpenCV; `camera=kitti`: the paper's KITTI intrinsics f = 718.9, c = 128 at 256^2, a ~20 degree view;
 `camera=wide`: f = 160, ~77 degrees) rides 1.65 m above the centre of the right lane, 1 m between frames,
@@ -42,7 +42,7 @@ SMOOTH = 4  # m: half-window of the moving average applied to the centre line
 MAX_PAIR_OFFSET = 7
 UP = np.array([0.0, 1.0, 0.0])  # every scene is returned y up, in metres
 SKY_ELEVATION = (-10.0, 60.0)  # degrees spanned by background.png from bottom to top row (approximate)
-DEFAULT_SOURCES = "stk,trigger,torcs"
+DEFAULT_SOURCES = "stk:2,torcs"
 # Depth histogram written with every render (depth_stats.json): log-spaced bins in metres.
 DEPTH_BINS = np.logspace(-2, 5, 7 * 50 + 1)
 
@@ -235,25 +235,34 @@ def stk_sources() -> list[SceneSource]:
     return out
 
 
-def trigger_sources() -> list[SceneSource]:
-    from nvs.data.render import trigger
-
-    return [SceneSource("trigger", name, lambda name=name: trigger.load_stage(name).runs,
-                        lambda name=name: trigger.load_stage(name).scene(), "trigger-rally-data",
-                        "GPL-2+ (trigger-rally-data)", f"Trigger Rally stage {name} (data.zip maps/{name})")
-            for name in trigger.stages()]
+SOURCES: dict[str, Callable[[], list[SceneSource]]] = {"stk": stk_sources, "torcs": torcs_sources}
+INSTALL = {"stk": "scripts/install_drive_assets.sh", "torcs": "scripts/install_assets.sh"}
 
 
-SOURCES: dict[str, Callable[[], list[SceneSource]]] = {"stk": stk_sources, "torcs": torcs_sources,
-                                                        "trigger": trigger_sources}
-INSTALL = {"stk": "scripts/install_drive_assets.sh", "torcs": "scripts/install_assets.sh",
-           "trigger": "scripts/install_assets.sh"}
+def parse_sources(names: str) -> dict[str, int]:
+    """'stk:2,torcs' -> {'stk': 2, 'torcs': 1} (sequences per round-robin turn)."""
+    out = {}
+    for item in [n.strip() for n in names.split(",") if n.strip()]:
+        name, _, k = item.partition(":")
+        if name not in SOURCES:
+            raise ValueError(f"unknown drive source {name!r}; known: {', '.join(SOURCES)}")
+        if name in out:
+            raise ValueError(f"drive source {name!r} given twice in {names!r}")
+        try:
+            out[name] = int(k) if k else 1
+        except ValueError:
+            raise ValueError(f"drive source weight must be an integer, got {item!r}") from None
+        if out[name] < 1:
+            raise ValueError(f"drive source weight must be >= 1, got {item!r}")
+    if not out:
+        raise ValueError("sources is empty")
+    return out
 
 
 def scene_sources(names: str) -> dict[str, list[SceneSource]]:
     """The requested sources' scenes, in source order; a requested source with nothing installed is an error."""
     out = {}
-    for name in [n.strip() for n in names.split(",") if n.strip()]:
+    for name in parse_sources(names):
         if name not in SOURCES:
             raise ValueError(f"unknown drive source {name!r}; known: {', '.join(SOURCES)}")
         found = SOURCES[name]()
@@ -285,7 +294,7 @@ def _windows(runs: list[tuple[np.ndarray, np.ndarray]], frames: int) -> list[tup
 
 
 def plan_sequences(sources: dict[str, list[SceneSource]], sequences: int, frames: int, seed: int,
-                   failed: list[str]) -> list[Planned]:
+                   failed: list[str], weights: dict[str, int] | None = None) -> list[Planned]:
     """Round-robin over sources, then over each source's scenes (seeded order), each turn taking the scene's
     next window. Scenes whose centre line cannot be read are reported in `failed` and skipped."""
     rng = random.Random(seed)
@@ -297,8 +306,9 @@ def plan_sequences(sources: dict[str, list[SceneSource]], sequences: int, frames
     windows: dict[tuple[str, str], list[tuple[int, int]]] = {}
     plan: list[Planned] = []
     cursor = {src: 0 for src in queues}
+    turns = [src for src in queues for _ in range((weights or {}).get(src, 1))]
     while len(plan) < sequences and any(queues.values()):
-        for src in list(queues):
+        for src in turns:
             if len(plan) >= sequences:
                 break
             while queues[src]:
@@ -414,7 +424,7 @@ def render_drive(out: Path, size: int = 256, seed: int = 0, sequences: int = 10,
     K = scaled_K(K256, size)
     Kss = scaled_K(K256, size * supersample)
     failed: list[str] = []
-    plan = plan_sequences(scene_sources(sources), sequences, frames, seed, failed)
+    plan = plan_sequences(scene_sources(sources), sequences, frames, seed, failed, parse_sources(sources))
     renderer = Renderer(size * supersample, Kss, znear=0.3, zfar=5000.0, bg_color=(0.0, 0.0, 0.0), lit=False)
     poses_lines: dict[int, list[str]] = {}
     missing: dict[str, list[str]] = {}
