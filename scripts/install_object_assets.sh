@@ -2,7 +2,7 @@
 # The large object packages for the full chairs/cars sets (nvs.data.render): fetched with `apt-get download` and
 # only the folders the renderer reads extracted under data/assets/<package>/ (the package's own paths kept).
 # Never installs the packages (flightgear-data-base is 1.28 GB); the fast test suite and the demo do not need this.
-# Idempotent: a package whose stamp exists is skipped. Usage: scripts/install_object_assets.sh [DEST]
+# Idempotent: a package extracted with the same member list is skipped. Usage: scripts/install_object_assets.sh [DEST]
 set -euo pipefail
 
 DEST="${1:-$(cd "$(dirname "$0")/.." && pwd)/data/assets}"
@@ -13,13 +13,14 @@ trap 'rm -rf "$TMP"' EXIT
 FG=usr/share/games/flightgear/Scenery/Models
 # package -> members to extract (tar patterns, relative to the package root)
 declare -A MEMBERS=(
-  [flightgear-data-base]="./$FG/Transport/* ./$FG/Airport/Vehicle/* ./$FG/Misc/strandkorb* ./$FG/Misc/parkbench1* ./$FG/Misc/recliners_parasols* ./usr/share/doc/flightgear-data-base/copyright ./usr/share/doc/flightgear-data-base/AUTHORS"
+  [flightgear-data-base]="./$FG/Transport/* ./$FG/Airport/Vehicle/* ./$FG/Military/humvee-pickup-odrab-low* ./$FG/Misc/strandkorb* ./$FG/Misc/parkbench1* ./$FG/Misc/recliners_parasols* ./usr/share/doc/flightgear-data-base/copyright ./usr/share/doc/flightgear-data-base/AUTHORS"
   [ufoai-data]="./usr/share/games/ufoai/base/0models.pk3 ./usr/share/doc/ufoai-data/copyright"
 )
 
 for pkg in flightgear-data-base ufoai-data; do
   out="$DEST/$pkg"
-  if [ -f "$out/.complete" ]; then
+  # The stamp holds the member list: a changed list re-extracts.
+  if [ -f "$out/.complete" ] && [ "$(cat "$out/.complete")" = "${MEMBERS[$pkg]}" ]; then
     echo "object assets: $pkg already extracted in $out"
     continue
   fi
@@ -48,6 +49,6 @@ EOF
   fi
   rm -f "$deb"
   rm -rf "$out" && mv "$out.partial" "$out"
-  touch "$out/.complete"
+  printf '%s' "${MEMBERS[$pkg]}" > "$out/.complete"
   echo "object assets: $pkg -> $out ($(du -sh "$out" | cut -f1), $(( $(date +%s) - t0 )) s)"
 done

@@ -32,7 +32,8 @@ CARS = {
     "Airport/Vehicle": (
         "BFD_Sprinter_308 ELW_Sprinter_215 RTW_Sprinter_515 RTW_Sprinter_515_BL EDDI-FollowMe EDDT-FollowMe "
         "airvehpickupgreen1 airvehpickupwhite1 gr_van-followme hatchback_red_follow_me rover-aegean van-aegean "
-        "fourgon-ba").split(),
+        "fourgon-ba traffic-ba").split(),
+    "Military": ["humvee-pickup-odrab-low-poly"],
 }
 # Chairs (ShapeNet's chair class): none. The package's seats are a park bench (Misc/parkbench1), a group of
 # recliners under parasols (Misc/recliners_parasols) and a two-seat hooded beach chair (Misc/strandkorb).

@@ -1,0 +1,158 @@
+"""Object sources: the MD2 reader (on files written here), front normalisation, geometry signatures and
+deduplication; and, where scripts/install_object_assets.sh has run, every FlightGear / UFO:AI model loading."""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+import pytest
+
+from nvs.data.render.md2 import read_md2
+from nvs.data.render.orient import facing, length_axis
+from nvs.data.render.scene import Part
+
+
+def _md2_bytes(verts_u8, scale, translate, tris, st, skin_wh=(64, 32), skins=("car",), magic=b"IDP2", version=8):
+    """A one-frame MD2 in the documented layout (header, skins, uvs, triangles, frame)."""
+    n_verts, n_st, n_tris = len(verts_u8), len(st), len(tris)
+    frame_size = 40 + 4 * n_verts
+    ofs_skins = 68
+    ofs_st = ofs_skins + 64 * len(skins)
+    ofs_tris = ofs_st + 4 * n_st
+    ofs_frames = ofs_tris + 12 * n_tris
+    ofs_end = ofs_frames + frame_size
+    out = struct.pack("<4s16i", magic, version, skin_wh[0], skin_wh[1], frame_size, len(skins), n_verts, n_st,
+                      n_tris, 0, 1, ofs_skins, ofs_st, ofs_tris, ofs_frames, ofs_end, ofs_end)
+    out += b"".join(s.encode().ljust(64, b"\0") for s in skins)
+    out += b"".join(struct.pack("<2h", *uv) for uv in st)
+    out += b"".join(struct.pack("<6h", *t) for t in tris)
+    out += struct.pack("<3f3f16s", *scale, *translate, b"frame0")
+    out += b"".join(struct.pack("<4B", *v, 0) for v in verts_u8)
+    return out
+
+
+def test_md2_positions_uvs_and_skins(tmp_path):
+    verts = [(0, 0, 0), (10, 0, 0), (0, 20, 5)]
+    p = tmp_path / "tri.md2"
+    p.write_bytes(_md2_bytes(verts, (0.5, 0.25, 2.0), (1.0, -1.0, 3.0), [(0, 1, 2, 0, 1, 2)],
+                             [(0, 0), (64, 0), (32, 16)], skins=(".car", "other")))
+    mesh = read_md2(p)
+    # vertex = byte * scale + translate, per corner
+    np.testing.assert_allclose(mesh.positions, [[1.0, -1.0, 3.0], [6.0, -1.0, 3.0], [1.0, 4.0, 13.0]])
+    # uv = st / skin size, v flipped (MD2's t grows downwards)
+    np.testing.assert_allclose(mesh.uvs, [[0.0, 1.0], [1.0, 1.0], [0.5, 0.5]])
+    assert mesh.faces.tolist() == [[0, 1, 2]]
+    assert mesh.skins == [".car", "other"]
+
+
+@pytest.mark.parametrize("case, message", [
+    ("magic", "not an MD2 v8 file"), ("version", "not an MD2 v8 file"), ("short", "too short"),
+    ("index", "out of range"), ("truncated", "inconsistent MD2 header"),
+])
+def test_md2_bad_files_name_the_file(tmp_path, case, message):
+    args = dict(verts_u8=[(0, 0, 0)] * 3, scale=(1, 1, 1), translate=(0, 0, 0), tris=[(0, 1, 2, 0, 0, 0)],
+                st=[(0, 0)])
+    if case == "magic":
+        args["magic"] = b"IDP3"
+    if case == "version":
+        args["version"] = 15
+    if case == "index":
+        args["tris"] = [(0, 1, 7, 0, 0, 0)]
+    data = _md2_bytes(**args)
+    data = {"short": data[:20], "truncated": data[:-8]}.get(case, data)
+    p = tmp_path / f"{case}.md2"
+    p.write_bytes(data)
+    with pytest.raises(ValueError, match=message) as err:
+        read_md2(p)
+    assert str(p) in str(err.value)
+
+
+def _box(lx: float, ly: float, lz: float, shift=(0.0, 0.0, 0.0)) -> Part:
+    import trimesh
+
+    b = trimesh.creation.box(extents=(lx, ly, lz))
+    return Part(np.asarray(b.vertices) + shift, np.asarray(b.faces), None, None, np.ones(4))
+
+
+def test_facing_turns_the_named_front_to_plus_z():
+    # A long box with a marker cube at its +x end: after facing('+x') the marker is at +z, y unchanged.
+    parts = [_box(4.0, 1.0, 2.0), _box(0.2, 0.2, 0.2, shift=(2.5, 0.3, 0.0))]
+    assert length_axis(parts) == "x"
+    for front, expect in (("+x", 1.0), ("-x", -1.0)):
+        turned = facing(parts, front)
+        marker = turned[1].positions.mean(0)
+        np.testing.assert_allclose(marker, [0.0, 0.3, 2.5 * expect], atol=1e-12)
+        assert length_axis(turned) == "z"
+        assert np.isclose(np.linalg.det(np.eye(3)), 1.0)
+    np.testing.assert_allclose(facing(parts, "+z")[1].positions, parts[1].positions)
+    np.testing.assert_allclose(facing(parts, "-z")[1].positions.mean(0), [-2.5, 0.3, 0.0], atol=1e-12)
+    with pytest.raises(ValueError, match="front must be one of"):
+        facing(parts, "up")
+
+
+def test_geometry_signature_ignores_texture_not_shape():
+    from PIL import Image
+
+    from nvs.data.render.objects import geometry_signature, normalised
+
+    plain = [_box(4.0, 1.5, 2.0)]
+    textured = [Part(plain[0].positions, plain[0].faces, np.zeros((8, 2)), Image.new("RGBA", (4, 4)), np.ones(4))]
+    # Same shape at another scale and place: normalisation makes the signatures equal.
+    moved = [Part(plain[0].positions * 3 + 7, plain[0].faces, None, None, np.array([1, 0, 0, 1.0]))]
+    other = [_box(4.0, 1.4, 2.0)]
+    sig = geometry_signature(normalised(plain))
+    assert sig == geometry_signature(normalised(textured)) == geometry_signature(normalised(moved))
+    assert sig != geometry_signature(normalised(other))
+
+
+@pytest.mark.render
+def test_identical_geometry_is_rendered_once(tmp_path):
+    """Three sources, two of them the same shape: two are rendered, the duplicate is listed in meta.json."""
+    from nvs.data.render.objects import render_objects
+    from nvs.data.render.sources import ModelSource
+
+    shapes = {"box-a": (1.0, 0.6, 0.8), "box-b": (1.0, 0.6, 0.8), "box-c": (1.0, 0.3, 0.8), "box-d": (0.5, 1, 1)}
+    sources = [ModelSource(i, i, "test", "CC0", "test", lambda e=e: [_box(*e)]) for i, e in shapes.items()]
+    meta = render_objects("cars", tmp_path, size=16, supersample=1, progress=False, sources=sources,
+                          pairs_per_model=2)
+    used = [m["id"] for m in meta["models"]]
+    assert len(used) == 3 and meta["duplicates"][0]["id"] in ("box-a", "box-b")
+    assert {meta["duplicates"][0]["id"], meta["duplicates"][0]["same_geometry_as"]} == {"box-a", "box-b"}
+    dup = meta["duplicates"][0]["id"]
+    assert not list((tmp_path / "images").glob(f"{dup}_*"))
+    # A re-run reads the cached signatures: nothing is loaded or rendered again.
+    calls = []
+    again = [ModelSource(s.id, s.name, s.package, s.licence, s.credit, lambda: calls.append(1)) for s in sources]
+    meta2 = render_objects("cars", tmp_path, size=16, supersample=1, progress=False, sources=again,
+                           pairs_per_model=2)
+    assert meta2["views_rendered"] == 0 and not calls and meta2["duplicates"] == meta["duplicates"]
+
+
+def _extracted_or_skip(module):
+    if not module.ROOT.is_dir():
+        pytest.skip(f"{module.PACKAGE} not extracted: run scripts/install_object_assets.sh")
+
+
+@pytest.mark.render
+@pytest.mark.parametrize("source", ["flightgear", "ufoai"])
+@pytest.mark.parametrize("kind", ["cars", "chairs"])
+def test_extracted_models_load_textured_and_front_along_z(source, kind):
+    """Every listed model of the extracted packages loads, has an image texture, and (cars) lies along z."""
+    import importlib
+
+    module = importlib.import_module(f"nvs.data.render.{source}")
+    _extracted_or_skip(module)
+    models = getattr(module, f"{source}_models")(kind)
+    listed = module.CARS if kind == "cars" else module.CHAIRS
+    # flightgear lists {folder: [names]}, ufoai {body: [wheel parts]}
+    expected = sum(len(v) for v in listed.values()) if source == "flightgear" else len(listed)
+    if expected == 0:
+        assert models == []
+        return
+    assert len(models) == expected
+    for m in models:
+        parts = m.load()
+        assert any(p.image is not None for p in parts), m.id
+        if kind == "cars":
+            assert length_axis(parts) == "z", m.id
