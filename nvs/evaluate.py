@@ -19,8 +19,8 @@ from nvs.build import build_data, build_module, device_name, git_sha, parameter_
 from nvs.config_check import check_cli_overrides, model_mismatch
 from nvs.errors import UserError, exits_cleanly, user_message
 from nvs.module import NVSModule
-from nvs.run_files import check_writable, is_global_zero, remove_unstarted_run, summary_line, write_metrics, \
-    write_per_image
+from nvs.run_files import (check_creatable, check_writable, is_global_zero, remove_unstarted_run, run_dir_of,
+                           summary_line, write_metrics, write_per_image)
 
 
 def load_checkpoint(path: str) -> dict:
@@ -145,5 +145,16 @@ def main(cfg: DictConfig) -> None:
     print(f"wrote {out_dir / 'metrics.json'} and {out_dir / 'test_per_image.csv'}")
 
 
-if __name__ == "__main__":
+def main_cli() -> None:
+    import sys
+
+    try:
+        check_creatable(run_dir_of(sys.argv[1:], "evaluate"))  # Hydra creates it before main(), with a traceback
+    except UserError as err:
+        print(f"error: {err}", file=sys.stderr)
+        sys.exit(2)
     main()
+
+
+if __name__ == "__main__":
+    main_cli()

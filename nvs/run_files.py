@@ -46,8 +46,42 @@ def check_writable(directory: str | Path) -> None:
         os.close(fd)
         os.unlink(probe)
     except OSError as err:
-        raise UserError(f"{directory}: output location is not writable ({err.strerror or err}); choose another "
+        why = "a file is in the way" if _blocker(directory) else (err.strerror or str(err))
+        raise UserError(f"{directory}: output location is not writable ({why}); choose another "
                         "(hydra.run.dir=..., paths.log_dir=...)") from None
+
+
+def _blocker(directory: Path) -> Path | None:
+    """The file (not folder) at ``directory`` or at one of its parents, if any."""
+    for p in (directory, *directory.parents):
+        if p.exists():
+            return None if p.is_dir() else p
+    return None
+
+
+def check_creatable(directory: str | Path) -> None:
+    """UserError if ``directory`` cannot be created: a file in the way, or its nearest existing parent is not
+    writable. Creates nothing (for the run directory, before Hydra makes it)."""
+    directory = Path(directory).absolute()
+    blocker = _blocker(directory)
+    parent = next((p for p in (directory, *directory.parents) if p.exists()), None)
+    if blocker is not None or (parent is not None and not os.access(parent, os.W_OK | os.X_OK)):
+        why = f"{blocker} is a file" if blocker is not None else f"{parent} is not writable"
+        raise UserError(f"{directory}: cannot create the run directory ({why}); choose another "
+                        "(hydra.run.dir=..., paths.log_dir=...)")
+
+
+def run_dir_of(argv: list[str], task: str) -> Path:
+    """The folder Hydra will create for ``argv`` (its parent for the default, time-stamped one)."""
+    multirun = any(a in ("-m", "--multirun") for a in argv)
+    key = "hydra.sweep.dir=" if multirun else "hydra.run.dir="
+    values = {a.split("=", 1)[0].lstrip("+"): a.split("=", 1)[1].strip("'\"") for a in argv if "=" in a}
+    if key[:-1] in values and "${" not in values[key[:-1]]:
+        return Path(values[key[:-1]])
+    if "paths.log_dir" in values and "${" not in values["paths.log_dir"]:
+        return Path(values["paths.log_dir"]) / task
+    root = values.get("paths.root_dir") or os.environ.get("NVS_ROOT") or "."
+    return Path(root) / "runs" / task
 
 
 # What a run writes before its first step: Hydra's config copy and log, the CSV logger, the checkpoint folder.

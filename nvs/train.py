@@ -27,8 +27,8 @@ from nvs.checkpoints import AtomicCheckpointIO
 from nvs.config_check import check_cli_overrides, trainer_arguments
 from nvs.errors import Interrupted, UserError, exits_cleanly, user_message
 from nvs.quiet import silence_known_noise
-from nvs.run_files import check_writable, is_global_zero, remove_unstarted_run, summary_line, write_metrics, \
-    write_per_image
+from nvs.run_files import (check_creatable, check_writable, is_global_zero, remove_unstarted_run, run_dir_of,
+                           summary_line, write_metrics, write_per_image)
 
 
 class _Throughput(L.Callback):
@@ -293,6 +293,7 @@ def main_cli() -> None:
 
     try:
         sys.argv[1:] = trainer_arguments(sys.argv[1:])
+        check_creatable(run_dir_of(sys.argv[1:], "train"))  # Hydra creates it before main(), with a traceback
     except UserError as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)
