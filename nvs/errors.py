@@ -36,10 +36,6 @@ def _rebuild_data_error(text: str, path: str, line: int | None) -> DataError:
     return err
 
 
-class JobFailed(UserError):
-    """A multirun job that stopped on a user error (already printed); Hydra records the job as failed."""
-
-
 class Interrupted(BaseException):
     """SIGINT/SIGTERM during a run. A BaseException, so that no ``except Exception`` on the way swallows it.
 
@@ -113,8 +109,11 @@ def exits_cleanly(main):
             if message is None:
                 raise  # not the user's: Hydra prints the traceback, exit 1
             print(f"error: {message}", file=sys.stderr)
-            if _multirun():
-                raise JobFailed(message) from None
+            if _multirun():  # this job failed; the multirun goes on and lists it at its end
+                from nvs.multirun import record_failure
+
+                record_failure(f"error: {message}", user_error=True)
+                return None
             sys.exit(2)
 
     return wrapper

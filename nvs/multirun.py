@@ -17,9 +17,18 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
-from nvs.errors import JobFailed
-
 FAILURES = "multirun_failures.jsonl"
+
+
+def record_failure(line: str, user_error: bool) -> None:
+    """Inside a multirun job: append this job's failure (one line) to the sweep's failure list."""
+    hc = HydraConfig.get()
+    record = {"job": hc.job.num, "overrides": list(hc.overrides.task), "dir": hc.runtime.output_dir,
+              "user_error": user_error, "line": line}
+    path = Path(hc.sweep.dir) / FAILURES
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "a") as f:
+        f.write(json.dumps(record) + "\n")
 
 
 class MultirunReport(Callback):
@@ -32,21 +41,12 @@ class MultirunReport(Callback):
         hc = HydraConfig.get()
         if hc.mode != RunMode.MULTIRUN or job_return.status != JobStatus.FAILED:
             return
+        # A bug (user errors never get here: nvs.errors.exits_cleanly records them and returns): its traceback, a
+        # one-line summary for the report, and the job marked done so that the sweeper goes on and ends normally.
         err = job_return._return_value
-        user = isinstance(err, JobFailed)
-        if user:
-            line = f"error: {err}"
-        else:  # a bug: its traceback, then a one-line summary in the report
-            traceback.print_exception(type(err), err, err.__traceback__, file=sys.stderr)
-            first = next((ln for ln in str(err).splitlines() if ln.strip()), "")
-            line = f"{type(err).__name__}: {first}".rstrip(": ")
-        record = {"job": hc.job.num, "overrides": list(hc.overrides.task), "dir": hc.runtime.output_dir,
-                  "user_error": user, "line": line}
-        path = Path(hc.sweep.dir) / FAILURES
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with open(path, "a") as f:
-            f.write(json.dumps(record) + "\n")
-        # The job is recorded here; marking it completed lets the sweeper launch the remaining jobs and end normally.
+        traceback.print_exception(type(err), err, err.__traceback__, file=sys.stderr)
+        first = next((ln for ln in str(err).splitlines() if ln.strip()), "")
+        record_failure(f"{type(err).__name__}: {first}".rstrip(": "), user_error=False)
         job_return.status = JobStatus.COMPLETED
         job_return.return_value = None
 
