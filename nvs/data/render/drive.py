@@ -16,6 +16,7 @@ sky (panorama, sky-box or colour) and depth 0 (no data).
 
 from __future__ import annotations
 
+import json
 import random
 import time
 from dataclasses import dataclass
@@ -410,6 +411,21 @@ def pose_line(fid: str, T: np.ndarray) -> str:
     return fid + " " + " ".join(f"{v:.9f}" for v in vals) + "\n"
 
 
+def _check_plan(out: Path, plan: dict) -> None:
+    """Frames on disk are reused only when they were rendered for the same plan (plan.json, written first)."""
+    f = out / "plan.json"
+    if f.is_file():
+        before = json.loads(f.read_text())
+        if before != plan:
+            keys = sorted(k for k in plan if before.get(k) != plan[k])
+            raise ValueError(f"{f}: {out} holds frames of another render ({', '.join(keys)} differ); "
+                             "render into a new out= folder or delete this one")
+    elif (out / "images").is_dir() and any((out / "images").iterdir()):
+        raise ValueError(f"{out} holds frames but no plan.json (another renderer's output?); render into a new "
+                         "out= folder or delete this one")
+    write_json(f, plan)
+
+
 def render_drive(out: Path, size: int = 256, seed: int = 0, sequences: int = 10, frames: int = 200,
                  supersample: int = 3, sources: str = DEFAULT_SOURCES, camera: str = "kitti",
                  progress: bool = True) -> dict:
@@ -425,6 +441,8 @@ def render_drive(out: Path, size: int = 256, seed: int = 0, sequences: int = 10,
     Kss = scaled_K(K256, size * supersample)
     failed: list[str] = []
     plan = plan_sequences(scene_sources(sources), sequences, frames, seed, failed, parse_sources(sources))
+    _check_plan(out, {"size": size, "supersample": supersample, "camera": camera, "frames": frames,
+                      "sequences": [[p.scene.source, p.scene.name, p.run, p.start] for p in plan]})
     renderer = Renderer(size * supersample, Kss, znear=0.3, zfar=5000.0, bg_color=(0.0, 0.0, 0.0), lit=False)
     poses_lines: dict[int, list[str]] = {}
     missing: dict[str, list[str]] = {}
