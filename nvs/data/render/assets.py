@@ -14,7 +14,7 @@ from typing import Callable
 import numpy as np
 from PIL import Image
 
-from nvs.data.render import flightgear, ufoai
+from nvs.data.render import flightgear, stk_objects, ufoai
 from nvs.data.render.scene import Part
 from nvs.data.render.sources import ModelSource, ac3d_parts, read_texture, slug  # noqa: F401 (re-exported)
 
@@ -23,7 +23,8 @@ TORCS_DIR = Path("/usr/share/games/torcs")
 TRIGGER_ZIP = Path("/usr/share/games/trigger-rally/data.zip")
 COPYRIGHT = {p: Path(f"/usr/share/doc/{p}/copyright")
              for p in ("sweethome3d-furniture", "torcs-data", "trigger-rally-data")}
-COPYRIGHT.update({flightgear.PACKAGE: flightgear.COPYRIGHT, ufoai.PACKAGE: ufoai.COPYRIGHT})
+COPYRIGHT.update({flightgear.PACKAGE: flightgear.COPYRIGHT, ufoai.PACKAGE: ufoai.COPYRIGHT,
+                  stk_objects.PACKAGE: stk_objects.COPYRIGHT})
 INSTALL_HINT = "install the asset packages with scripts/install_assets.sh"
 
 # ShapeNet's chair class holds chairs, armchairs, stools and lounge chairs; sofas and benches are other classes.
@@ -247,7 +248,8 @@ def trigger_models() -> list[ModelSource]:
 def category_models(category: str) -> list[ModelSource]:
     """All candidate models of 'chairs' or 'cars' whose packages are present, sorted by id.
 
-    FlightGear and UFO:AI models are there only after scripts/install_object_assets.sh (the full sets).
+    FlightGear and UFO:AI models are there only after scripts/install_object_assets.sh, SuperTuxKart's after
+    scripts/install_drive_assets.sh (the full sets).
     """
     if category == "chairs":
         models = sh3d_models("chairs")
@@ -255,5 +257,6 @@ def category_models(category: str) -> list[ModelSource]:
         models = sh3d_models("cars") + torcs_models() + trigger_models()
     else:
         raise ValueError(f"unknown object category {category!r}")
-    models += flightgear.flightgear_models(category) + ufoai.ufoai_models(category)
+    models += (flightgear.flightgear_models(category) + ufoai.ufoai_models(category)
+               + stk_objects.stk_models(category))
     return sorted(models, key=lambda m: m.id)
