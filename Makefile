@@ -4,7 +4,7 @@
 PYTHON ?= python3
 PIP := $(PYTHON) -m pip
 
-.PHONY: setup demo test test-all assets
+.PHONY: setup demo test test-all assets objects-full
 
 setup: .setup-stamp
 
@@ -24,3 +24,15 @@ test: setup
 
 test-all: setup
 	$(PYTHON) -m pytest -q -m "not gpu"
+
+# The full chairs/cars sets (docs/datasets.md): FlightGear and UFO:AI models fetched with apt-get download and only
+# their folders extracted under data/assets/ (scripts/install_object_assets.sh), SuperTuxKart's library objects
+# from the drive assets; then the renders at 64^2 and one contact sheet per source under docs/contact/.
+# Not part of setup, test or demo.
+objects-full: setup
+	bash scripts/install_object_assets.sh
+	bash scripts/install_drive_assets.sh
+	$(PYTHON) -m nvs.data.render chairs size=64
+	$(PYTHON) -m nvs.data.render cars size=64
+	$(PYTHON) -m nvs.data.render sheets root=data/chairs_64 out=docs/contact
+	$(PYTHON) -m nvs.data.render sheets root=data/cars_64 out=docs/contact
