@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The large object packages for the full chairs/cars sets (nvs.data.render): fetched with `apt-get download` and
 # only the folders the renderer reads extracted under data/assets/<package>/ (the package's own paths kept).
-# Never installs the packages (flightgear-data-base is 1.28 GB); the fast test suite and the demo do not need this.
+# Never installs the packages (flightgear-data-base is 1.28 GB; sweethome3d, its default catalog's chairs, would pull
+# in Java); the fast test suite and the demo do not need this.
 # Idempotent: a package extracted with the same member list is skipped. Usage: scripts/install_object_assets.sh [DEST]
 set -euo pipefail
 
@@ -15,9 +16,10 @@ FG=usr/share/games/flightgear/Scenery/Models
 declare -A MEMBERS=(
   [flightgear-data-base]="./$FG/Transport/* ./$FG/Airport/Vehicle/* ./$FG/Military/humvee-pickup-odrab-low* ./$FG/Misc/strandkorb* ./$FG/Misc/parkbench1* ./$FG/Misc/recliners_parasols* ./usr/share/doc/flightgear-data-base/copyright ./usr/share/doc/flightgear-data-base/AUTHORS"
   [ufoai-data]="./usr/share/games/ufoai/base/0models.pk3 ./usr/share/doc/ufoai-data/copyright"
+  [sweethome3d]="./usr/share/sweethome3d/sweethome3d.jar ./usr/share/doc/sweethome3d/copyright"
 )
 
-for pkg in flightgear-data-base ufoai-data; do
+for pkg in flightgear-data-base ufoai-data sweethome3d; do
   out="$DEST/$pkg"
   # The stamp holds the member list: a changed list re-extracts.
   if [ -f "$out/.complete" ] && [ "$(cat "$out/.complete")" = "${MEMBERS[$pkg]}" ]; then

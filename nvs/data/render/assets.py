@@ -16,14 +16,18 @@ from PIL import Image
 
 from nvs.data.render import flightgear, stk_objects, ufoai
 from nvs.data.render.scene import Part
-from nvs.data.render.sources import ModelSource, ac3d_parts, read_texture, slug  # noqa: F401 (re-exported)
+from nvs.data.render.sources import ASSET_DIR, ModelSource, ac3d_parts, read_texture, slug  # noqa: F401 (re-export)
 
 SH3D_DIR = Path("/usr/share/sweethome3d/furniture")
+# Sweet Home 3D's own default catalog (package sweethome3d, extracted by scripts/install_object_assets.sh).
+SH3D_JAR = ASSET_DIR / "sweethome3d" / "usr/share/sweethome3d/sweethome3d.jar"
+SH3D_DEFAULT_CATALOG = "com/eteks/sweethome3d/io/DefaultFurnitureCatalog.properties"
 TORCS_DIR = Path("/usr/share/games/torcs")
 TRIGGER_ZIP = Path("/usr/share/games/trigger-rally/data.zip")
 COPYRIGHT = {p: Path(f"/usr/share/doc/{p}/copyright")
              for p in ("sweethome3d-furniture", "torcs-data", "trigger-rally-data")}
-COPYRIGHT.update({flightgear.PACKAGE: flightgear.COPYRIGHT, ufoai.PACKAGE: ufoai.COPYRIGHT,
+COPYRIGHT.update({"sweethome3d": ASSET_DIR / "sweethome3d" / "usr/share/doc/sweethome3d/copyright",
+                  flightgear.PACKAGE: flightgear.COPYRIGHT, ufoai.PACKAGE: ufoai.COPYRIGHT,
                   stk_objects.PACKAGE: stk_objects.COPYRIGHT})
 INSTALL_HINT = "install the asset packages with scripts/install_assets.sh"
 
@@ -36,9 +40,9 @@ _NOT_CAR = re.compile(r"truck|bus\b|model", re.I)
 
 # --- Sweet Home 3D catalogs -------------------------------------------------------------------------------------
 
-def _properties(z: zipfile.ZipFile) -> dict[str, str]:
+def _properties(z: zipfile.ZipFile, name: str = "PluginFurnitureCatalog.properties") -> dict[str, str]:
     props = {}
-    for line in z.read("PluginFurnitureCatalog.properties").decode("latin-1").splitlines():
+    for line in z.read(name).decode("latin-1").splitlines():
         line = line.strip()
         if line and not line.startswith("#") and "=" in line:
             k, v = line.split("=", 1)
@@ -102,12 +106,18 @@ def _sh3d_loader(catalog: Path, model_path: str, rotation: np.ndarray) -> Callab
 
 
 def sh3d_models(kind: str) -> list[ModelSource]:
-    """Seats ('chairs') or cars ('cars') of the Sweet Home 3D furniture catalogs."""
+    """Seats ('chairs') or cars ('cars') of the Sweet Home 3D furniture catalogs (and of its default catalog,
+    when extracted)."""
     out = []
-    for catalog in sorted(SH3D_DIR.glob("*.sh3f")):
+    catalogs = [(c, "sweethome3d-furniture", "PluginFurnitureCatalog.properties")
+                for c in sorted(SH3D_DIR.glob("*.sh3f"))]
+    if SH3D_JAR.is_file():
+        catalogs.append((SH3D_JAR, "sweethome3d", SH3D_DEFAULT_CATALOG))
+    for catalog, package, props_name in catalogs:
         with zipfile.ZipFile(catalog) as z:
-            props = _properties(z)
-        licence = props.get("license", "see copyright")
+            props = _properties(z, props_name)
+        default_licence = "GPL-2+ (sweethome3d copyright)" if package == "sweethome3d" else "see copyright"
+        licence = props.get("license", default_licence)
         ids = sorted({int(k.split("#")[1]) for k in props if k.startswith("name#")})
         for i in ids:
             name, cat = props.get(f"name#{i}", ""), props.get(f"category#{i}", "")
@@ -122,10 +132,11 @@ def sh3d_models(kind: str) -> list[ModelSource]:
             model = props[f"model#{i}"]
             rot = props.get(f"modelRotation#{i}")
             R = np.array([float(v) for v in rot.split()]).reshape(3, 3) if rot else np.eye(3)
-            folder = model.lstrip("/").split("/")[-2]
+            # Plugin catalogs hold one folder per model; the default catalog keeps all models in one folder.
+            folder = Path(model).stem if package == "sweethome3d" else model.lstrip("/").split("/")[-2]
             mid = slug("sh3d", catalog.stem, folder)
             creator = props.get(f"creator#{i}", "")
-            out.append(ModelSource(mid, name, "sweethome3d-furniture", licence,
+            out.append(ModelSource(mid, name, package, licence,
                                    f"'{name}' by {creator}, {catalog.name}", _sh3d_loader(catalog, model, R)))
     if len({m.id for m in out}) != len(out):
         raise RuntimeError("duplicated Sweet Home 3D model ids")
