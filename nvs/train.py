@@ -119,6 +119,9 @@ class _Interruption(L.Callback):
             return self.last.is_file()
         if not self.last.is_file() or torch.load(self.last, map_location="cpu", weights_only=False,
                                                  mmap=True).get("global_step") != trainer.global_step:
+            for cb in trainer.checkpoint_callbacks:  # the resumed callback then writes last.ckpt, not last-v1.ckpt
+                if Path(cb.dirpath or "") == self.last.parent:
+                    cb.last_model_path = str(self.last)
             trainer.save_checkpoint(self.last)
         return True
 
