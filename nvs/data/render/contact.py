@@ -20,8 +20,12 @@ def _tile(path: Path, size: int) -> Image.Image:
 
 
 def object_rows(root: Path, models: int, size: int, elevation: int = 20) -> list[tuple[str, list[Image.Image]]]:
-    """`models` evenly spaced models of a root (sorted ids), each at SHEET_AZIMUTHS."""
-    ids = sorted({p.stem.rsplit("_", 2)[0] for p in (root / "images").glob("*.png")})
+    """`models` evenly spaced models of a root (sorted ids, from meta.json when there), each at SHEET_AZIMUTHS."""
+    meta = root / "meta.json"
+    if meta.is_file():  # views of models a re-render no longer uses may still lie in images/
+        ids = sorted(m["id"] for m in json.loads(meta.read_text())["models"])
+    else:
+        ids = sorted({p.stem.rsplit("_", 2)[0] for p in (root / "images").glob("*.png")})
     pick = [ids[int(i)] for i in np.linspace(0, len(ids) - 1, min(models, len(ids)))]
     return [(m, [_tile(root / "images" / f"{m}_{az}_{elevation}.png", size) for az in SHEET_AZIMUTHS])
             for m in pick]

@@ -105,6 +105,26 @@ def _signature_path(root: Path, model: str) -> Path:
     return root / "signatures" / f"{model}.txt"
 
 
+def _signature(root: Path, source: ModelSource) -> str:
+    """The model's geometry signature, cached in signatures/<id>.txt so that a re-run need not load it."""
+    path = _signature_path(root, source.id)
+    if path.is_file():
+        return path.read_text().strip()
+    sig = geometry_signature(normalised(source.load()))
+    write_text(path, sig + "\n")
+    return sig
+
+
+def _report_failure(failed: list[tuple[str, str]], source: ModelSource, err: Exception, progress: bool) -> None:
+    from tqdm import tqdm
+
+    msg = f"{err.__class__.__name__}: {err}"
+    failed.append((source.id, msg))
+    tqdm.write(f"skipped model {source.id} ({source.name}): {msg}")
+    if progress:
+        tqdm.write(traceback.format_exc(limit=2))
+
+
 def _render_model(renderer: Renderer, root: Path, model: str, parts: list[Part], factor: int) -> int:
     """Render the 54 views of one normalised model; returns the number of views written."""
     renderer.set_mesh(to_pyrender(parts))
@@ -125,47 +145,47 @@ def render_objects(category: str, out: Path, size: int = 256, seed: int = 0, max
     sources = category_models(category) if sources is None else sources
     order = sorted(sources, key=lambda m: m.id)
     random.Random(seed).shuffle(order)  # max_models takes a seeded sample; failures are replaced by the next
-    want = len(order) if max_models is None else min(max_models, len(order))
     K = scaled_K(K256, size)
     renderer = Renderer(size * supersample, scaled_K(K256, size * supersample), znear=0.5, zfar=4.0, lit=True)
     used: list[ModelSource] = []
     failed: list[tuple[str, str]] = []
     duplicates: dict[str, str] = {}  # model -> the model with identical geometry that is used instead
-    seen: dict[str, str] = {}  # geometry signature -> model
     skipped = views = 0
     t0 = time.perf_counter()
-    bar = tqdm(total=want, desc=f"render {category} {size}px", unit="model", disable=not progress)
+    bar = tqdm(desc=f"render {category} {size}px", unit="model", disable=not progress)
     try:
+        # Pass 1: geometry signatures of every candidate; of identical geometries the smallest id is kept, so the
+        # kept model does not depend on the seed, max_models or which other sources are present.
+        keep: dict[str, str] = {}
+        for source in tqdm(sorted(order, key=lambda m: m.id), desc=f"signatures {category}", unit="model",
+                           disable=not progress):
+            try:
+                sig = _signature(out, source)
+            except Exception as err:  # a broken model must not stop the dataset; it is named and skipped
+                _report_failure(failed, source, err, progress)
+                continue
+            if sig in keep:
+                duplicates[source.id] = keep[sig]
+            else:
+                keep[sig] = source.id
+        kept = set(keep.values())
+        want = len(kept) if max_models is None else min(max_models, len(kept))
+        bar.total = want
+        # Pass 2: render the kept models in the seeded order until `want` are done.
         for source in order:
             if len(used) >= want:
                 break
+            if source.id not in kept:
+                continue
             try:
-                # The signature is cached beside the views so that a re-run need not load finished models.
-                sig_file = _signature_path(out, source.id)
-                parts = None
-                if sig_file.is_file():
-                    sig = sig_file.read_text().strip()
-                else:
-                    parts = normalised(source.load())
-                    sig = geometry_signature(parts)
-                    write_text(sig_file, sig + "\n")
-                if sig in seen:
-                    duplicates[source.id] = seen[sig]
-                    continue
                 if is_done(out, source.id):
                     skipped += 1
                 else:
-                    parts = normalised(source.load()) if parts is None else parts
-                    views += _render_model(renderer, out, source.id, parts, supersample)
-                seen[sig] = source.id
+                    views += _render_model(renderer, out, source.id, normalised(source.load()), supersample)
                 used.append(source)
                 bar.update(1)
-            except Exception as err:  # a broken model must not stop the dataset; it is named and skipped
-                msg = f"{err.__class__.__name__}: {err}"
-                failed.append((source.id, msg))
-                tqdm.write(f"skipped model {source.id} ({source.name}): {msg}")
-                if progress:
-                    tqdm.write(traceback.format_exc(limit=2))
+            except Exception as err:
+                _report_failure(failed, source, err, progress)
     finally:
         bar.close()
         renderer.close()
