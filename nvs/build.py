@@ -10,6 +10,7 @@ from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from nvs import fidelity
 from nvs.data.datamodule import NVSDataModule, build_datamodule
 from nvs.errors import UserError
 from nvs.module import NVSModule
@@ -44,11 +45,17 @@ def build_data(cfg: DictConfig) -> NVSDataModule:
 
 
 def build_module(cfg: DictConfig) -> NVSModule:
+    try:
+        fidelity.check(OmegaConf.to_container(cfg.fidelity, resolve=True) if cfg.get("fidelity") else None)
+    except fidelity.FidelityError as err:
+        raise UserError(f"config {err}") from None
     # 'name' labels the model option in tables; everything else is the network's constructor arguments.
-    net_cfg = OmegaConf.masked_copy(cfg.model, [k for k in cfg.model if k != "name"])
-    net = _instantiate(net_cfg, "model", _convert_="all")
-    losses = {name: _instantiate(node, f"loss.{name}") for name, node in (cfg.get("loss") or {}).items()}
-    optimizer = _instantiate(cfg.optim, "optim")
+    # Component configs interpolate shared nodes (fidelity, data): resolve each against the whole config first.
+    model = OmegaConf.to_container(cfg.model, resolve=True)
+    net = _instantiate(OmegaConf.create({k: v for k, v in model.items() if k != "name"}), "model", _convert_="all")
+    losses = {name: _instantiate(OmegaConf.create(OmegaConf.to_container(node, resolve=True)), f"loss.{name}")
+              for name, node in (cfg.get("loss") or {}).items()}
+    optimizer = _instantiate(OmegaConf.create(OmegaConf.to_container(cfg.optim, resolve=True)), "optim")
     scheduler = _instantiate(cfg.scheduler, "scheduler") if cfg.get("scheduler") else None
     module = NVSModule(net, losses, optimizer, nonfinite=cfg.nonfinite, channels_last=bool(cfg.channels_last),
                        model_name=str(cfg.model.get("name", "nvs")), scheduler=scheduler)

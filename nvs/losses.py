@@ -6,7 +6,6 @@ only what the enabled losses use. Image-space terms are computed on the [-1,1] r
 
 from __future__ import annotations
 
-import kornia
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
@@ -31,17 +30,29 @@ class LossTerm(nn.Module):
         self.weight = float(weight)
 
 
-class ReconLoss(LossTerm):
-    """Multi-scale L1: sum_i w_i |up(I~_t^i) - I_t|; ``scale_weights`` run from the finest scale to coarser ones.
+IMAGE_RANGES = ("model", "image")  # model: [-1,1] (what the authors' code feeds its losses); image: [0,1]
+SIDE_UPSAMPLES = ("nearest", "bilinear")
 
-    ``scale_weights=[1]`` is "w/o multi-scale" (final scale only).
+
+def _check(value, choices, name: str):
+    if value not in choices:
+        raise ValueError(f"{name}={value!r}: choose one of {list(choices)}")
+    return value
+
+
+class ReconLoss(LossTerm):
+    """Multi-scale L1: sum_i w_i |up(I~_t^i) - I_t| on [-1,1]; ``scale_weights`` run from the finest scale to coarser.
+
+    ``scale_weights=[1]`` is "w/o multi-scale" (final scale only). ``side_upsample``: how the coarser predictions
+    are brought to full size, ``nearest`` (the authors' code) or ``bilinear``.
     """
 
-    def __init__(self, weight: float = 10.0, scale_weights=(1.0, 0.5, 0.2, 0.1)):
+    def __init__(self, weight: float = 10.0, scale_weights=(1.0, 0.5, 0.2, 0.1), side_upsample: str = "nearest"):
         super().__init__(weight)
         self.scale_weights = [float(w) for w in scale_weights]
         if not self.scale_weights:
             raise ValueError("scale_weights must list at least the final scale")
+        self.side_upsample = _check(side_upsample, SIDE_UPSAMPLES, "side_upsample")
 
     def forward(self, out: Outputs, batch: Batch) -> torch.Tensor:
         tgt = to_model_range(batch["tgt"])
@@ -52,26 +63,45 @@ class ReconLoss(LossTerm):
         total = tgt.new_zeros(())
         for w, p in zip(self.scale_weights, preds):
             if p.shape[-2:] != tgt.shape[-2:]:
-                p = F.interpolate(p, size=tgt.shape[-2:], mode="bilinear", align_corners=False)
+                if self.side_upsample == "nearest":
+                    p = F.interpolate(p, size=tgt.shape[-2:], mode="nearest")
+                else:
+                    p = F.interpolate(p, size=tgt.shape[-2:], mode="bilinear", align_corners=False)
             total = total + w * (up(p) - tgt).abs().mean()
         return total
 
 
 class VGGLoss(LossTerm):
-    """Perceptual loss: sum over VGG16 layers of the mean L1 between features (ImageNet weights, frozen)."""
+    """Perceptual loss: sum over VGG16 layers of the mean L1 between features (ImageNet weights, frozen).
 
-    def __init__(self, weight: float = 1.0, layers=("relu1_2", "relu2_2", "relu3_3", "relu4_3")):
+    ``image_range``: ``model`` feeds the [-1,1] images into the ImageNet normalisation, as the authors' code does;
+    ``image`` feeds [0,1] images, as ImageNet's statistics assume. ``size``: both images resized bilinearly to
+    size x size first (the code: 224), or ``null`` for the native size.
+    """
+
+    def __init__(self, weight: float = 1.0, layers=("relu1_2", "relu2_2", "relu3_3", "relu4_3"),
+                 image_range: str = "model", size: int | None = 224):
         super().__init__(weight)
         from nvs.models.vgg import VGG16Features
 
+        self.image_range = _check(image_range, IMAGE_RANGES, "vgg_range")
+        if size is not None and (not isinstance(size, int) or size < 32):
+            raise ValueError(f"vgg_size={size!r}: an image size of at least 32, or null for the native size")
+        self.size = size
         self.vgg = VGG16Features(tuple(layers))
+
+    def _input(self, img: torch.Tensor) -> torch.Tensor:
+        x = to_model_range(img) if self.image_range == "model" else img
+        if self.size is not None and tuple(x.shape[-2:]) != (self.size, self.size):
+            x = F.interpolate(x, size=(self.size, self.size), mode="bilinear", align_corners=False)
+        return x
 
     def forward(self, out: Outputs, batch: Batch) -> torch.Tensor:
         pred, tgt = out["rgb"], batch["tgt"]
         # Target features need no graph: batching them with the prediction would make backward run through both.
         with torch.no_grad():
-            feats_tgt = self.vgg(tgt.to(pred.dtype))
-        feats_pred = self.vgg(pred)
+            feats_tgt = self.vgg(self._input(tgt.to(pred.dtype)))
+        feats_pred = self.vgg(self._input(pred))
         return sum((up(fp) - up(ft)).abs().mean() for fp, ft in zip(feats_pred, feats_tgt))
 
 
@@ -87,35 +117,59 @@ class DepthConsistencyLoss(LossTerm):
         return (up(out[Extras.DEPTH_FROM_TGT]) - up(out["depth"])).abs().mean()
 
 
-class EdgeSmoothLoss(LossTerm):
-    """Edge-aware smoothness |dD| exp(-|dI|) of the predicted target depth (and the source depth, as the paper's code)."""
+def edge_aware_smoothness(depth: torch.Tensor, image: torch.Tensor, factor: float) -> torch.Tensor:
+    """mean |d_x D| exp(-factor mean_c |d_x I|) + the same along y; depth (B,1,H,W), image (B,C,H,W) -> scalar."""
+    dd_y, dd_x = depth[:, :, 1:] - depth[:, :, :-1], depth[..., 1:] - depth[..., :-1]
+    di_y, di_x = image[:, :, 1:] - image[:, :, :-1], image[..., 1:] - image[..., :-1]
+    w_y = torch.exp(-factor * di_y.abs().mean(1, keepdim=True))
+    w_x = torch.exp(-factor * di_x.abs().mean(1, keepdim=True))
+    return (dd_x.abs() * w_x).mean() + (dd_y.abs() * w_y).mean()
 
-    def __init__(self, weight: float = 10.0, on_source: bool = True):
+
+class EdgeSmoothLoss(LossTerm):
+    """Edge-aware smoothness |dD| exp(-factor |dI|) of the predicted target depth (and the source depth).
+
+    The authors' code: ``factor=10`` on [-1,1] images (``image_range=model``), on the target and the source depth
+    (``on_source``); the paper's text: factor 1, target only (with ``image_range=image`` this is kornia's
+    ``inverse_depth_smoothness_loss``).
+    """
+
+    def __init__(self, weight: float = 10.0, on_source: bool = True, factor: float = 10.0,
+                 image_range: str = "model"):
         super().__init__(weight)
-        self.on_source = on_source
+        if not factor >= 0:
+            raise ValueError(f"smooth_factor={factor!r}: must be >= 0")
+        self.factor = float(factor)
+        self.image_range = _check(image_range, IMAGE_RANGES, "smooth_range")
+        # The source term is a build-time choice: two classes of pairs, one loop.
+        self.pairs = (("depth", "tgt"), (Extras.DEPTH_SRC, "src")) if on_source else (("depth", "tgt"),)
         self.needs = frozenset({Extras.DEPTH_SRC}) if on_source else frozenset()
 
-    @staticmethod
-    def _term(depth: torch.Tensor, image: torch.Tensor) -> torch.Tensor:
-        # kornia's smoothness is written for inverse depth but is the same operator on any map.
-        return kornia.losses.inverse_depth_smoothness_loss(up(depth), up(image))
-
     def forward(self, out: Outputs, batch: Batch) -> torch.Tensor:
-        loss = self._term(out["depth"], batch["tgt"])
-        if self.on_source:
-            loss = loss + self._term(out[Extras.DEPTH_SRC], batch["src"])
-        return loss
+        total = 0.0
+        for depth_key, image_key in self.pairs:
+            img = up(batch[image_key])
+            img = to_model_range(img) if self.image_range == "model" else img
+            total = total + edge_aware_smoothness(up(out[depth_key]), img, self.factor)
+        return total
 
 
 class WarpLoss(LossTerm):
-    """L1 between the source image warped by the predicted target depth and the target, on valid pixels."""
+    """L1 between the source image warped by the predicted target depth and the target, on [-1,1].
+
+    ``pixels``: ``all`` averages every pixel (the authors' code, whose warp pads with the border), ``valid``
+    averages only the pixels whose source point is in front of the source camera and inside the source image.
+    """
 
     needs = frozenset({Extras.WARPED_SRC})
 
-    def __init__(self, weight: float = 10.0):
+    def __init__(self, weight: float = 10.0, pixels: str = "all"):
         super().__init__(weight)
+        self.masked = _check(pixels, ("all", "valid"), "warp_loss_pixels") == "valid"
 
     def forward(self, out: Outputs, batch: Batch) -> torch.Tensor:
+        diff = (to_model_range(up(out[Extras.WARPED_SRC])) - to_model_range(batch["tgt"])).abs()
+        if not self.masked:
+            return diff.mean()
         valid = up(out["warp_valid"])
-        diff = (to_model_range(up(out[Extras.WARPED_SRC])) - to_model_range(batch["tgt"])).abs() * valid
-        return diff.sum() / (valid.sum() * diff.shape[1]).clamp_min(1.0)
+        return (diff * valid).sum() / (valid.sum() * diff.shape[1]).clamp_min(1.0)

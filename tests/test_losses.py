@@ -56,12 +56,38 @@ def test_multiscale_weights_apply_finest_first():
     assert ReconLoss(scale_weights=[1.0, 0.5, 0.2, 0.1])(out, batch).item() == pytest.approx(0.55, abs=1e-6)
 
 
-def test_warp_loss_ignores_invalid_pixels():
+def test_warp_loss_ignores_invalid_pixels_only_when_asked():
     batch = fixture_batch()
     out = _perfect_outputs(batch)
     out[Extras.WARPED_SRC] = torch.zeros_like(batch["tgt"])
     out["warp_valid"] = torch.zeros_like(out["warp_valid"])
-    assert WarpLoss()(out, batch) == 0
+    assert WarpLoss(pixels="valid")(out, batch) == 0
+    # the authors' code averages every pixel: the (border-padded) invalid ones count
+    expected = (0 * 2 - 1 - (batch["tgt"] * 2 - 1)).abs().mean()
+    assert WarpLoss(pixels="all")(out, batch).item() == pytest.approx(expected.item(), rel=1e-6)
+
+
+def test_edge_smoothness_matches_kornia_with_the_papers_settings():
+    import kornia
+
+    batch = fixture_batch()
+    depth = torch.rand(2, 1, 64, 64) + 1
+    ours = EdgeSmoothLoss(on_source=False, factor=1.0, image_range="image")({"depth": depth}, batch)
+    ref = kornia.losses.inverse_depth_smoothness_loss(depth, batch["tgt"])
+    assert ours.item() == pytest.approx(ref.item(), rel=1e-6)
+
+
+def test_edge_weight_of_the_code_is_stronger_at_image_edges():
+    """exp(-10 mean|dI|) on [-1,1] images (the code) weights an edge far less than exp(-|dI|) on [0,1]."""
+    img = torch.zeros(1, 3, 8, 8)
+    img[..., 4:] = 0.4  # a vertical edge of 0.4 (0.8 on [-1,1])
+    depth = torch.ones(1, 1, 8, 8)
+    depth[..., 4:] = 2.0  # a depth edge at the image edge
+    batch = {"tgt": img}
+    code = EdgeSmoothLoss(on_source=False, factor=10.0, image_range="model")({"depth": depth}, batch)
+    paper = EdgeSmoothLoss(on_source=False, factor=1.0, image_range="image")({"depth": depth}, batch)
+    # per edge pixel: exp(-10 * 0.8) vs exp(-0.4)
+    assert code.item() == pytest.approx(paper.item() * torch.exp(torch.tensor(-8.0 + 0.4)).item(), rel=1e-5)
 
 
 def test_needs_declare_extras():

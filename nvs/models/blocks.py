@@ -1,4 +1,4 @@
-"""Convolution blocks shared by the encoder and decoders."""
+"""Convolution blocks shared by the encoder, the decoders and the baselines, and the weight initialisation."""
 
 from __future__ import annotations
 
@@ -11,6 +11,16 @@ NORMS = {
     "batch": lambda c: nn.BatchNorm2d(c),
     "none": lambda c: nn.Identity(),
 }
+PADDINGS = ("zeros", "reflect")
+INITS = ("normal", "default")
+UPSAMPLES = ("nearest", "bilinear")
+
+
+def check_choice(value, choices, name: str):
+    """One clear error for a switch given a value it does not know (``name`` is the config key to fix)."""
+    if value not in choices:
+        raise ValueError(f"{name}={value!r}: choose one of {list(choices)}")
+    return value
 
 
 def act() -> nn.Module:
@@ -25,9 +35,11 @@ def down(cin: int, cout: int, norm: str = "instance", activation: bool = True) -
     return nn.Sequential(*layers)
 
 
-def conv3(cin: int, cout: int, norm: str = "instance", activation: bool = True) -> nn.Sequential:
-    """3x3 convolution with reflection padding: (B,cin,H,W) -> (B,cout,H,W)."""
-    layers = [nn.Conv2d(cin, cout, 3, padding=1, padding_mode="reflect"), NORMS[norm](cout)]
+def conv3(cin: int, cout: int, norm: str = "instance", activation: bool = True,
+          padding: str = "reflect") -> nn.Sequential:
+    """3x3 convolution, reflection (or zero) padding: (B,cin,H,W) -> (B,cout,H,W)."""
+    check_choice(padding, PADDINGS, "padding")
+    layers = [nn.Conv2d(cin, cout, 3, padding=1, padding_mode=padding), NORMS[norm](cout)]
     if activation:
         layers.append(act())
     return nn.Sequential(*layers)
@@ -43,22 +55,77 @@ def upsample2(x: torch.Tensor) -> torch.Tensor:
     return F.interpolate(x, scale_factor=2.0, mode="bilinear", align_corners=False)
 
 
+def upsample_side(x: torch.Tensor, size, mode: str) -> torch.Tensor:
+    """A side prediction (B,3,h,w) brought to ``size``: nearest (the authors' code) or bilinear."""
+    if tuple(x.shape[-2:]) == tuple(size):
+        return x
+    if mode == "nearest":
+        return F.interpolate(x, size=size, mode="nearest")
+    return F.interpolate(x, size=size, mode="bilinear", align_corners=False)
+
+
+class UpStage(nn.Module):
+    """One x2 decoder stage + norm + LeakyReLU(0.2): (B,cin,h,w) -> (B,cout,2h,2w).
+
+    ``transposed``: 4x4 stride-2 transposed convolution; otherwise bilinear x2, reflection pad 1, 3x3 convolution
+    (the two kinds of the authors' decoders: transposed near 1x1, bilinear from 4x4 on).
+    """
+
+    def __init__(self, cin: int, cout: int, transposed: bool, norm: str):
+        super().__init__()
+        self.transposed = transposed
+        self.conv = (nn.ConvTranspose2d(cin, cout, 4, stride=2, padding=1) if transposed
+                     else nn.Conv2d(cin, cout, 3))
+        self.norm = NORMS[norm](cout)
+        self.act = act()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if not self.transposed:
+            x = F.pad(upsample2(x), (1, 1, 1, 1), mode="reflect")
+        return self.act(self.norm(self.conv(x)))
+
+
+# Stages of a decoder trunk that are transposed convolutions (the rest, towards S/16, are bilinear).
+N_TRANSPOSED = 2
+
+
 class Trunk(nn.Module):
-    """Latent (B,n*3) -> fc -> 256 x 1 x 1 -> transposed-conv stages -> (B,256,S/16,S/16)."""
+    """Latent (B,n*3) -> fc + LeakyReLU -> 256 x 1 x 1 -> x2 stages -> (B,256,S/16,S/16).
+
+    The authors' decoders at 256^2: two transposed stages (1 -> 4) then two bilinear ones (4 -> 16), 256 channels,
+    a norm after every stage. Smaller images drop the bilinear stages (64^2: none, 128^2: one). Sizes whose S/16 is
+    not a power of two end at the largest power of two below it and are resized bilinearly.
+    """
 
     def __init__(self, latent_dim: int, image_size: int, channels: int = 256, norm: str = "instance"):
         super().__init__()
         self.out_size = image_size // 16
         n_up = self.out_size.bit_length() - 1  # 1x1 -> the largest power of two <= S/16
         self.fc = nn.Linear(latent_dim, channels)
-        # Normalising a 1x1 (or 2x2) map per instance would erase it; those stages use batch norm or none.
-        stage_norm = lambda i: norm if (norm != "instance" or 2 ** (i + 1) >= 4) else "none"  # noqa: E731
-        self.ups = nn.Sequential(*[up_transposed(channels, channels, stage_norm(i)) for i in range(n_up)])
+        self.stages = nn.ModuleList([UpStage(channels, channels, i < N_TRANSPOSED, norm) for i in range(n_up)])
         self.channels = channels
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
-        x = self.fc(z.flatten(1))[:, :, None, None]
-        x = self.ups(F.leaky_relu(x, 0.2))
-        if x.shape[-1] != self.out_size:  # sizes whose S/16 is not a power of two (80, 96, 144, ...)
+        x = F.leaky_relu(self.fc(z.flatten(1)), 0.2)[:, :, None, None]
+        for stage in self.stages:
+            x = stage(x)
+        if x.shape[-1] != self.out_size:
             x = F.interpolate(x, size=(self.out_size, self.out_size), mode="bilinear", align_corners=False)
         return x
+
+
+@torch.no_grad()
+def init_weights(module: nn.Module, scheme: str) -> None:
+    """``normal``: conv/linear weights N(0, 0.02), biases 0, BatchNorm scale N(1, 0.02) (the authors' code);
+    ``default``: leave PyTorch's initialisation."""
+    check_choice(scheme, INITS, "init")
+    if scheme == "default":
+        return
+    for m in module.modules():
+        if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d, nn.Linear)):
+            nn.init.normal_(m.weight, 0.0, 0.02)
+            if m.bias is not None:
+                nn.init.zeros_(m.bias)
+        elif isinstance(m, nn.BatchNorm2d):
+            nn.init.normal_(m.weight, 1.0, 0.02)
+            nn.init.zeros_(m.bias)

@@ -15,14 +15,24 @@ import torch
 import torch.nn as nn
 
 from nvs.errors import UserError
+from nvs.models.blocks import check_choice
 from nvs.models.depth_decoder import DepthDecoder
 from nvs.models.net import Extras
 from nvs.types import Batch, Outputs
 
 
+NORM_BATCHES = ("separate", "joint")
+
+
 class _LatentDepth(nn.Module):
-    """Depth decoded from latents; the target's and the extras' latents go through ``decode`` in one batch, so a
-    BatchNorm in the decoder sees one batch per step."""
+    """Depth decoded from latents: the transformed latent, then (when the losses ask) the source's and the target's
+    own. ``norm_batches``: ``separate`` decodes each in its own call, as the authors' code does (a BatchNorm in the
+    decoder normalises each with its own statistics and updates its running statistics three times a step);
+    ``joint`` decodes them in one batch (one set of statistics per step)."""
+
+    def __init__(self, norm_batches: str = "separate"):
+        super().__init__()
+        self.norm_batches = check_choice(norm_batches, NORM_BATCHES, "depth_norm_batches")
 
     def decode(self, z: torch.Tensor) -> torch.Tensor:
         """(N,n,3) -> (N,1,S,S)."""
@@ -30,17 +40,23 @@ class _LatentDepth(nn.Module):
 
     def forward(self, z_t: torch.Tensor, z_s: torch.Tensor, encode_target: Callable[[], torch.Tensor], batch: Batch,
                 needs: frozenset[str]) -> Outputs:
-        extras = [key for key in (Extras.DEPTH_FROM_TGT, Extras.DEPTH_SRC) if key in needs]
+        # The code's order: transformed latent, source latent, target's own latent.
+        extras = [key for key in (Extras.DEPTH_SRC, Extras.DEPTH_FROM_TGT) if key in needs]
         latents = [z_t] + [encode_target() if key == Extras.DEPTH_FROM_TGT else z_s for key in extras]
-        depths = [self.decode(z_t)] if len(latents) == 1 else self.decode(torch.cat(latents)).chunk(len(latents))
+        if len(latents) == 1:
+            depths = [self.decode(z_t)]
+        elif self.norm_batches == "separate":
+            depths = [self.decode(z) for z in latents]
+        else:
+            depths = self.decode(torch.cat(latents)).chunk(len(latents))
         return {"depth": depths[0], **dict(zip(extras, depths[1:]))}
 
 
 class PredictedDepth(_LatentDepth):
     """The paper: a per-pixel depth map from the depth decoder psi_d."""
 
-    def __init__(self, image_size: int, n_points: int, head: nn.Module):
-        super().__init__()
+    def __init__(self, image_size: int, n_points: int, head: nn.Module, norm_batches: str = "separate"):
+        super().__init__(norm_batches)
         self.decoder = DepthDecoder(image_size, n_points, head)
 
     def decode(self, z: torch.Tensor) -> torch.Tensor:
@@ -56,7 +72,7 @@ class PlaneDepth(_LatentDepth):
     """
 
     def __init__(self, image_size: int, n_points: int, head: nn.Module, hidden: int = 256):
-        super().__init__()
+        super().__init__("joint")
         self.image_size = image_size
         self.mlp = nn.Sequential(nn.Linear(n_points * 3, hidden), nn.LeakyReLU(0.2), nn.Linear(hidden, 1))
         nn.init.zeros_(self.mlp[-1].weight)

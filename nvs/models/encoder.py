@@ -6,7 +6,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from nvs.models.blocks import NORMS, conv3, down
+from nvs.models.blocks import NORMS, PADDINGS, check_choice, conv3, down
 
 SKIP_CHANNELS = {"conv0": 64, "conv2": 128, "conv3": 256, "conv4": 256}
 SKIP_STRIDES = {"conv0": 1, "conv2": 4, "conv3": 8, "conv4": 16}
@@ -16,17 +16,22 @@ class Encoder(nn.Module):
     """The paper's encoder (LeakyReLU 0.2, InstanceNorm without affine); stages after conv4 follow the image size.
 
     (B,3,S,S) in [-1,1] -> z (B,n_points,3), {level: (B,C,S/stride,S/stride)}. ``conv0_norm`` is the norm of the
-    two full-resolution convs (the paper: instance; ``none`` keeps each image's colour levels in the conv0 skip).
+    two full-resolution convs (the authors' code: instance; ``none`` keeps each image's colour levels in the conv0
+    skip) and ``conv0_padding`` their padding (the code: zeros). At 256^2 this is the authors' ``Encoder`` layer for
+    layer (conv5, conv6 are ``extra``).
     """
 
-    def __init__(self, image_size: int, n_points: int = 200, conv0_norm: str = "instance"):
+    def __init__(self, image_size: int, n_points: int = 200, conv0_norm: str = "instance",
+                 conv0_padding: str = "zeros"):
         super().__init__()
         if image_size % 16 or image_size < 64:
             raise ValueError(f"image_size={image_size} must be a multiple of 16 and at least 64")
         if conv0_norm not in NORMS:
             raise ValueError(f"model.conv0_norm={conv0_norm!r}: choose one of {sorted(NORMS)}")
+        check_choice(conv0_padding, PADDINGS, "conv0_padding")
         self.n_points = n_points
-        self.conv0 = nn.Sequential(conv3(3, 64, norm=conv0_norm), conv3(64, 64, norm=conv0_norm))
+        self.conv0 = nn.Sequential(conv3(3, 64, norm=conv0_norm, padding=conv0_padding),
+                                   conv3(64, 64, norm=conv0_norm, padding=conv0_padding))
         self.conv1 = down(64, 64, norm="none")
         self.conv2 = down(64, 128)
         self.conv3 = down(128, 256)

@@ -7,10 +7,11 @@ from collections.abc import Callable
 import torch
 import torch.nn as nn
 
-from nvs.geometry import inverse_warp
+from nvs.models.blocks import check_choice, init_weights
 from nvs.models.encoder import Encoder
-from nvs.models.latent import transform_latent
+from nvs.models.latent import ROTATIONS, transform_latent
 from nvs.models.pixel_decoder import PixelDecoder
+from nvs.models.warp import check_warp, warp
 from nvs.types import Batch, Outputs
 
 # An encoded source image: latent points z_s (B,n,3) and the encoder's skip features {level: (B,C,h,w)}.
@@ -44,21 +45,37 @@ def decode_depths(encoder: nn.Module, depth_source: nn.Module, z_s: torch.Tensor
 
 
 class NVSNet(nn.Module):
-    """Depth-guided skip-connection network (Hou et al. 2021).
+    """Depth-guided skip-connection network (Hou et al. 2021), at 256^2 the authors' network layer for layer.
 
     forward(batch, needs) -> outputs with ``rgb`` (B,3,S,S) in [0,1], ``rgb_scales`` (coarse -> fine, [-1,1]),
     ``depth`` (B,1,S,S) and whichever ``Extras`` were requested. ``forward = render(encode(src), batch, needs)``: a
     viewer encodes a source image once and renders it at many poses.
+
+    The fidelity switches (``conf/fidelity``, docs/fidelity.md) default to the authors' code: ``decoder_norm``,
+    ``conv0_norm``, ``conv0_padding``, ``latent_rotation`` (``nvs.models.latent``), ``side_upsample`` (pixel
+    decoder), ``warp_align`` / ``warp_padding`` (the source warp the warp loss reads; ``nvs.models.warp``) and
+    ``init`` (``nvs.models.blocks.init_weights``). The skips and the depth source carry their own.
     """
 
     def __init__(self, image_size: int, skips: nn.Module, depth: Callable[..., nn.Module], n_points: int = 200,
-                 decoder_norm: str = "batch", conv0_norm: str = "instance"):
+                 decoder_norm: str = "instance", conv0_norm: str = "instance", conv0_padding: str = "zeros",
+                 latent_rotation: str = "code", side_upsample: str = "nearest", warp_align: str = "code",
+                 warp_padding: str = "border", init: str = "normal"):
         super().__init__()
+        check_warp(warp_align, warp_padding)
+        check_choice(latent_rotation, ROTATIONS, "latent_rotation")
         self.image_size = image_size
-        self.encoder = Encoder(image_size, n_points, conv0_norm=conv0_norm)
+        self.latent_rotation = latent_rotation
+        self.warp_align, self.warp_padding = warp_align, warp_padding
+        self.encoder = Encoder(image_size, n_points, conv0_norm=conv0_norm, conv0_padding=conv0_padding)
         self.depth = depth(image_size=image_size, n_points=n_points)
         self.skips = skips
-        self.pixel_decoder = PixelDecoder(image_size, n_points, skips.levels, norm=decoder_norm)
+        self.pixel_decoder = PixelDecoder(image_size, n_points, skips.levels, norm=decoder_norm,
+                                          side_upsample=side_upsample)
+        # The depth source's own decoder only: a plane's zero-initialised last layer keeps its start.
+        for part in (self.encoder, self.pixel_decoder, getattr(self.depth, "decoder", None)):
+            if part is not None:
+                init_weights(part, init)
 
     def forward(self, batch: Batch, needs: frozenset[str] = frozenset()) -> Outputs:
         return self.render(self.encode(batch["src"]), batch, needs)
@@ -71,7 +88,7 @@ class NVSNet(nn.Module):
         """Everything that depends on the pose (``batch``'s K, T_tgt_src, pivot; src/tgt only for the extras)."""
         z_s, feats = encoded
         K, T = batch["K"], batch["T_tgt_src"]
-        z_t = transform_latent(z_s, T, batch["pivot"])
+        z_t = transform_latent(z_s, T, batch["pivot"], self.latent_rotation)
         out: Outputs = decode_depths(self.encoder, self.depth, z_s, z_t, batch, needs)
         depth = out["depth"]
         rgb_scales = self.pixel_decoder(z_t, self.skips(feats, depth, K, T))
@@ -79,5 +96,6 @@ class NVSNet(nn.Module):
         out["rgb"] = to_image_range(rgb_scales[-1])
         if Extras.WARPED_SRC in needs:
             src = batch["src"]
-            out[Extras.WARPED_SRC], out["warp_valid"] = inverse_warp(src, depth.to(src.dtype), K, T)
+            out[Extras.WARPED_SRC], out["warp_valid"] = warp(src, depth.to(src.dtype), K, T, self.warp_align,
+                                                             self.warp_padding)
         return out

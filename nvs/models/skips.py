@@ -11,8 +11,15 @@ from __future__ import annotations
 import torch
 import torch.nn as nn
 
-from nvs.geometry import downsample_depth, inverse_warp, max_warp_displacement, scale_intrinsics
+import torch.nn.functional as F
+
+from nvs.geometry import downsample_depth, max_warp_displacement, scale_intrinsics
+from nvs.models.blocks import check_choice
 from nvs.models.encoder import SKIP_CHANNELS, SKIP_STRIDES
+from nvs.models.warp import check_warp, warp
+
+DEPTH_DOWNSAMPLES = ("nearest", "area")
+INTRINSICS_SCALINGS = ("code", "exact")
 
 
 def _check_levels(levels) -> tuple[str, ...]:
@@ -31,23 +38,58 @@ class _LevelSkips(nn.Module):
         self.levels = _check_levels(levels)
 
 
-def _at_level(lv: str, f: torch.Tensor, depth: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The depth downsampled to a level's features f (B,C,h,w) and K scaled to it: (B,1,h,w), (B,3,3)."""
-    s = SKIP_STRIDES[lv]
-    return downsample_depth(depth, tuple(f.shape[-2:])), (scale_intrinsics(K, 1.0 / s) if s != 1 else K)
+def code_scaled_intrinsics(K: torch.Tensor, s: float) -> torch.Tensor:
+    """K (B,3,3) with fx, fy, cx, cy all multiplied by s: the authors' code (exact is ``scale_intrinsics``)."""
+    K = K.clone()
+    K[:, :2, :] = K[:, :2, :] * s
+    return K
 
 
-class WarpedSkips(_LevelSkips):
-    """Warp each level's features into the target view with the depth downsampled to it and K scaled to it."""
+class _WarpingSkips(_LevelSkips):
+    """Skips warped into the target view; how each level gets its depth, K and warp is chosen at build time.
+
+    ``depth_downsample``: ``nearest`` (the code: every stride-th pixel, F.interpolate's default) or ``area``
+    (the mean over each block, matching ``intrinsics_scaling=exact``); ``intrinsics_scaling``: ``code`` (fx, fy,
+    cx, cy times 1/stride) or ``exact`` (pixel centres preserved, ``nvs.geometry.scale_intrinsics``);
+    ``align`` / ``padding``: see ``nvs.models.warp``.
+    """
 
     needs_depth = True
+
+    def __init__(self, levels=("conv0", "conv2", "conv3", "conv4"), align: str = "code", padding: str = "border",
+                 depth_downsample: str = "nearest", intrinsics_scaling: str = "code"):
+        super().__init__(levels)
+        check_warp(align, padding)
+        self.align, self.padding = align, padding
+        self.depth_downsample = check_choice(depth_downsample, DEPTH_DOWNSAMPLES, "skip_depth")
+        self.intrinsics_scaling = check_choice(intrinsics_scaling, INTRINSICS_SCALINGS, "skip_intrinsics")
+
+    def at_level(self, lv: str, f: torch.Tensor, depth: torch.Tensor, K: torch.Tensor):
+        """The depth brought to a level's features f (B,C,h,w) and K scaled to it: (B,1,h,w), (B,3,3)."""
+        s = SKIP_STRIDES[lv]
+        if s == 1:
+            return depth, K
+        size = tuple(f.shape[-2:])
+        if self.depth_downsample == "nearest":
+            d = F.interpolate(depth, size=size, mode="nearest")
+        else:
+            d = downsample_depth(depth, size)
+        Ks = code_scaled_intrinsics(K, 1.0 / s) if self.intrinsics_scaling == "code" else scale_intrinsics(K, 1.0 / s)
+        return d, Ks
+
+    def warp(self, f, d, K, T):
+        return warp(f, d, K, T, self.align, self.padding)[0]
+
+
+class WarpedSkips(_WarpingSkips):
+    """Warp each level's features into the target view with the depth and K brought to that level."""
 
     def forward(self, feats: dict[str, torch.Tensor], depth: torch.Tensor, K: torch.Tensor,
                 T_tgt_src: torch.Tensor) -> dict[str, torch.Tensor]:
         out = {}
         for lv in self.levels:
-            d, Ks = _at_level(lv, feats[lv], depth, K)
-            out[lv], _ = inverse_warp(feats[lv], d, Ks, T_tgt_src)
+            d, Ks = self.at_level(lv, feats[lv], depth, K)
+            out[lv] = self.warp(feats[lv], d, Ks, T_tgt_src)
         return out
 
 
@@ -64,20 +106,21 @@ def level_displacement(d: torch.Tensor, K: torch.Tensor, T_tgt_src: torch.Tensor
     return max_warp_displacement(K, T_tgt_src, lo, hi, tuple(d.shape[-2:]))
 
 
-class AdaptiveWarpedSkips(_LevelSkips):
+class AdaptiveWarpedSkips(_WarpingSkips):
     """Warped skips that skip the warp of a (sample, level) whose bound on the displacement is below threshold_px.
 
     For each level, ``level_displacement`` bounds how far the warp could move any pixel of that sample at that
     level's resolution (from the pose, K and the depth's range); samples below ``threshold_px`` pass their features
     unwarped, the others are warped as a subset and scattered back. With the identity pose the bound is exactly 0,
-    so the output equals the unwarped features (which the warp reproduces up to round-off); ``threshold_px=0``
-    warps everything, as ``WarpedSkips``. Counts of skipped warps per level accumulate until ``reset_counts``.
+    so the output equals the unwarped features (which the exact warp, ``align=exact``, reproduces up to round-off;
+    the code's alignment shifts even an identity warp, so there skipping is not output-preserving);
+    ``threshold_px=0`` warps everything, as ``WarpedSkips``. Counts of skipped warps per level accumulate until
+    ``reset_counts``.
     """
 
-    needs_depth = True
-
-    def __init__(self, levels=("conv0", "conv2", "conv3", "conv4"), threshold_px: float = 0.5):
-        super().__init__(levels)
+    def __init__(self, levels=("conv0", "conv2", "conv3", "conv4"), threshold_px: float = 0.5, align: str = "code",
+                 padding: str = "border", depth_downsample: str = "nearest", intrinsics_scaling: str = "code"):
+        super().__init__(levels, align, padding, depth_downsample, intrinsics_scaling)
         if not threshold_px >= 0:
             raise ValueError(f"threshold_px must be >= 0, got {threshold_px}")
         self.threshold_px = float(threshold_px)
@@ -102,7 +145,7 @@ class AdaptiveWarpedSkips(_LevelSkips):
         out = {}
         for lv in self.levels:
             f = feats[lv]
-            d, Ks = _at_level(lv, f, depth, K)
+            d, Ks = self.at_level(lv, f, depth, K)
             warp = level_displacement(d, Ks, T_tgt_src) >= self.threshold_px
             idx = warp.nonzero()[:, 0]
             n = idx.numel()
@@ -111,9 +154,9 @@ class AdaptiveWarpedSkips(_LevelSkips):
             if n == 0:
                 out[lv] = f
             elif n == f.shape[0]:
-                out[lv], _ = inverse_warp(f, d, Ks, T_tgt_src)
+                out[lv] = self.warp(f, d, Ks, T_tgt_src)
             else:
-                warped, _ = inverse_warp(f[idx], d[idx], Ks[idx], T_tgt_src[idx])
+                warped = self.warp(f[idx], d[idx], Ks[idx], T_tgt_src[idx])
                 out[lv] = f.index_copy(0, idx, warped)
         return out
 
