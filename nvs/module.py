@@ -201,7 +201,11 @@ class NVSModule(L.LightningModule):
     def configure_optimizers(self):
         # The network's parameters only: a loss term with trainable parts (a critic) steps them with its own optimiser.
         params = [p for p in self.net.parameters() if p.requires_grad]
-        optimizer = self.optimizer_factory(params)
+        # A network may split them into groups with their own settings (Sun et al.: the pixel module at half the lr).
+        groups = self.net.param_groups() if hasattr(self.net, "param_groups") else params
+        optimizer = self.optimizer_factory(groups)
+        for group in optimizer.param_groups:
+            group["lr"] *= group.get("lr_scale", 1.0)
         if self.scheduler_factory is None:
             return optimizer
         # Schedules are stepped per optimiser step, so their horizon is trainer.max_steps.
