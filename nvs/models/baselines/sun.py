@@ -166,7 +166,8 @@ class Sun(nn.Module):
     What differs (see docs/fidelity_baselines.md): one input view, so the ConvLSTM runs one step from a zero state;
     the pose is the relative [R|t] about the pivot, 12 numbers (their objects use one-hot view bins, their scenes a
     6-vector pose difference); images are [-1,1] without their inversion of object images (a sign their first and
-    last layers absorb); any size divisible by 2^n_layers. The adversarial term on the pixel module is the
+    last layers absorb); any size divisible by 2^n_layers; one optimiser with two parameter groups (``param_groups``)
+instead of their two Adams. The adversarial term on the pixel module is the
     ``adversarial`` loss term (``nvs.losses_adversarial``).
 
     forward(batch, needs) -> ``rgb`` (B,3,S,S) in [0,1], ``rgb_scales`` [(B,3,S,S) in [-1,1]], ``rgb_branches``
@@ -176,7 +177,8 @@ class Sun(nn.Module):
     provides = frozenset({RGB_BRANCHES})
 
     def __init__(self, image_size: int, n_layers: int = 5, n_res_flow: int = 4, n_res_pixel: int = 0,
-                 lstm_scales: int = 3, lstm_blocks: int = 2, padding_mode: str = "border"):
+                 lstm_scales: int = 3, lstm_blocks: int = 2, padding_mode: str = "border",
+                 pixel_lr_scale: float = 1.0, pixel_betas: tuple[float, float] | None = None):
         super().__init__()
         if image_size % 2 ** n_layers:
             raise ValueError(f"image_size={image_size} must be divisible by 2^n_layers = {2 ** n_layers}")
@@ -185,6 +187,8 @@ class Sun(nn.Module):
         if padding_mode not in ("border", "zeros"):
             raise ValueError(f"padding_mode={padding_mode!r}: expected 'border' or 'zeros'")
         self.padding_mode = padding_mode
+        self.pixel_lr_scale = float(pixel_lr_scale)
+        self.pixel_betas = tuple(float(b) for b in pixel_betas) if pixel_betas is not None else None
         cin = 3 + 2 + POSE_DIM
         self.flow_encoder = SunEncoder(cin, n_layers)
         self.pixel_encoder = SunEncoder(cin, n_layers, lstm_scales, lstm_blocks)
@@ -196,6 +200,16 @@ class Sun(nn.Module):
             if isinstance(m, nn.Conv2d):
                 nn.init.xavier_uniform_(m.weight)
                 nn.init.zeros_(m.bias)
+
+    def param_groups(self) -> list[dict]:
+        """Optimiser groups: the flow module at the optimiser's settings, the pixel module at ``pixel_lr_scale`` times
+        its lr and with ``pixel_betas`` (their two Adams: flow lr 1e-4, pixel lr 5e-5 with beta1 0.5 under the GAN)."""
+        pixel = [p for m in (self.pixel_encoder, self.pixel_decoder) for p in m.parameters() if p.requires_grad]
+        flow = [p for m in (self.flow_encoder, self.flow_decoder) for p in m.parameters() if p.requires_grad]
+        group = {"params": pixel, "lr_scale": self.pixel_lr_scale}
+        if self.pixel_betas is not None:
+            group["betas"] = self.pixel_betas
+        return [{"params": flow}, group]
 
     def forward(self, batch: Batch, needs: frozenset[str] = frozenset()) -> Outputs:
         check_needs("sun", needs, self.provides)
