@@ -30,8 +30,14 @@ for pkg in flightgear-data-base ufoai-data sweethome3d; do
   echo "object assets: downloading $pkg"
   (cd "$TMP" && apt-get download -q "$pkg" 2>&1 | grep -v "unsandboxed" || true)
   deb=$(ls "$TMP"/"${pkg}"_*.deb 2>/dev/null | head -n1)
+  if [ -z "$deb" ]; then  # a fresh machine may have no package lists yet
+    SUDO=""; if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
+    $SUDO apt-get update -qq
+    (cd "$TMP" && apt-get download -q "$pkg" 2>&1 | grep -v "unsandboxed" || true)
+    deb=$(ls "$TMP"/"${pkg}"_*.deb 2>/dev/null | head -n1)
+  fi
   if [ -z "$deb" ]; then
-    echo "object assets: apt-get download $pkg failed (is the Debian archive reachable? try apt-get update)" >&2
+    echo "object assets: apt-get download $pkg failed (is the Debian archive reachable?)" >&2
     exit 1
   fi
   rm -rf "$out.partial" && mkdir -p "$out.partial"
