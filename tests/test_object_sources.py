@@ -156,3 +156,22 @@ def test_extracted_models_load_textured_and_front_along_z(source, kind):
         assert any(p.image is not None for p in parts), m.id
         if kind == "cars":
             assert length_axis(parts) == "z", m.id
+
+
+def test_stk_licence_is_read_from_the_node_block():
+    from nvs.data.render.stk_objects import licence_of
+
+    text = ("Files:\n data/library/stklib_a/*\n data/library/stklib_b/*\nCopyright:\n 2016 Someone\n 2017 Other\n"
+            "License: CC-BY-SA-3.0\n\nFiles: data/library/stklib_c/*\nCopyright: 2014 Third\nLicense: CC0\n")
+    assert licence_of("stklib_b", text) == ("2016 Someone 2017 Other", "CC-BY-SA-3.0")
+    assert licence_of("stklib_c", text) == ("2014 Third", "CC0")
+    assert licence_of("stklib_missing", text) == ("see copyright", "see copyright")
+
+
+def test_source_sheets_need_a_rendered_root(tmp_path, capsys):
+    from nvs.data.render.__main__ import main
+
+    with pytest.raises(SystemExit) as err:
+        main(["sheets", f"root={tmp_path}", f"out={tmp_path / 'out'}"])
+    assert err.value.code == 2
+    assert str(tmp_path / "meta.json") in capsys.readouterr().err
