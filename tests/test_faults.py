@@ -255,7 +255,7 @@ def test_wrong_override_type_names_the_key(override, message):
 @pytest.mark.parametrize("overrides", [
     ["trainer.val_check_interval=0.5"],  # a number for a number: Lightning takes a fraction of an epoch
     ["trainer.precision=16", "trainer.max_steps=null"],  # a scalar for a string; null for anything
-    ["experiment=sun_chairs", "model.fc_dim=128"],  # the experiment's own defaults count
+    ["experiment=sun_chairs", "model.lstm_blocks=1"],  # the experiment's own defaults count
     ["model=chen", "model.n_points=100"],
     ["+callbacks.model_checkpoint.every_n_train_steps=2", "~test", "hydra.run.dir=/x", "seed=1,2"],
     ["data=drive", "data.depth_head.max_disparity=20"],
