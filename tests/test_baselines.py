@@ -178,6 +178,50 @@ def test_chen_warp_matches_inverse_warp_inside_and_replicates_the_border():
     assert torch.allclose(same, src, atol=1e-5) and same_valid.all()
 
 
+def test_chen_is_their_auto_encoder():
+    from nvs.models.baselines.chen import Chen, ChenDecoder, ChenEncoder
+    from nvs.models.depth_head import BoundedDepth
+
+    enc, dec = ChenEncoder(256), ChenDecoder(256)
+    convs = [m for m in enc.convs if isinstance(m, torch.nn.Conv2d)]
+    assert [c.out_channels for c in convs] == [64, 128, 256, 256, 256, 256, 256, 256]
+    assert sum(isinstance(m, torch.nn.BatchNorm2d) for m in enc.modules()) == 6  # none after the first and the last
+    ups = [m for m in dec.ups if isinstance(m, (torch.nn.Conv2d, torch.nn.ConvTranspose2d))]
+    assert [type(m).__name__ for m in ups[:3]] == ["ConvTranspose2d", "ConvTranspose2d", "Conv2d"]
+    assert [m.out_channels for m in ups] == [256, 256, 256, 256, 256, 128, 64, 32, 1]
+    assert sum(isinstance(m, torch.nn.ReflectionPad2d) for m in dec.modules()) == 6
+    # Smaller images drop stages; the widths of the finest stages stay theirs.
+    assert [m.out_channels for m in ChenDecoder(64).ups if isinstance(m, (torch.nn.Conv2d, torch.nn.ConvTranspose2d))] \
+        == [256, 256, 256, 128, 64, 32, 1]
+    with pytest.raises(ValueError, match="power of two"):
+        ChenEncoder(96)
+    torch.manual_seed(0)
+    net = Chen(64, BoundedDepth())
+    w = torch.cat([m.weight.flatten() for m in net.modules() if isinstance(m, torch.nn.Conv2d)])
+    assert abs(w.std().item() - 0.02) < 0.002  # their init_weights('normal', 0.02)
+
+
+def test_chen_latent_rotation_code_is_the_transpose_of_exact():
+    from nvs.models.baselines.chen import transform_points
+
+    batch = fixture_batch(B=1)
+    z = torch.randn(1, 5, 3)
+    code = transform_points(z, batch["T_tgt_src"], batch["pivot"], "code")
+    exact = transform_points(z, batch["T_tgt_src"], batch["pivot"], "exact")
+    R = batch["T_tgt_src"][0, :3, :3]
+    assert torch.allclose(exact[0], z[0] @ R.T, atol=1e-6) and torch.allclose(code[0], z[0] @ R, atol=1e-6)
+    assert not torch.allclose(code, exact, atol=1e-3)
+
+
+def test_sun_trains_its_two_modules_with_their_own_adam_settings(tmp_path):
+    module = _module("sun", tmp_path)
+    flow, pixel = module.configure_optimizers().param_groups
+    assert (flow["lr"], flow["betas"]) == (1e-4, (0.9, 0.999)) and (pixel["lr"], pixel["betas"]) == (5e-5, (0.5, 0.999))
+    ids = [id(p) for g in (flow, pixel) for p in g["params"]]
+    assert len(ids) == len(set(ids)) and set(ids) == {id(p) for p in module.net.parameters()}
+    assert {id(p) for p in module.net.pixel_decoder.parameters()} <= {id(p) for p in pixel["params"]}
+
+
 def test_sun_zero_flow_copies_the_source_and_the_blend_is_the_confidence_softmax():
     torch.manual_seed(0)
     net = Sun(64)
