@@ -63,7 +63,9 @@ def run_config(cfg: DictConfig) -> tuple[DictConfig, dict | None]:
             if diff:
                 raise UserError(f"{cfg.ckpt_path} holds another option of model '{run.model.get('name')}': {diff}")
     elif cfg.get("model") is not None:
-        run = OmegaConf.create({"model": OmegaConf.to_container(cfg.model), "loss": {}, "optim": None,
+        # A reference model trains nothing; the module still takes an optimiser factory (never called).
+        run = OmegaConf.create({"model": OmegaConf.to_container(cfg.model), "loss": {},
+                                "optim": {"_target_": "torch.optim.SGD", "_partial_": True, "lr": 0.0},
                                 "nonfinite": "stop", "channels_last": False, "trainer": {"precision": "32-true"}})
     else:
         raise UserError("give ckpt_path=... (a trained model) or model=copy_source|gt_warp (no training)")
