@@ -106,7 +106,9 @@ def test_a_tiny_study_runs_through_submitit_local(objects_root, tmp_path):
     study.write_text(json.dumps({
         "name": "tiny", "seeds": [0, 1], "size": 64, "steps": 2,
         "overrides": [f"data.root={objects_root}"],
-        "rows": [{"name": "copy", "reference": "copy_source", "data": "chairs"}]}))
+        # reference rows train nothing (one seed each): two jobs, each a submitit job of its own
+        "rows": [{"name": "copy", "reference": "copy_source", "data": "chairs"},
+                 {"name": "gtwarp", "reference": "gt_warp", "data": "chairs"}]}))
     res = subprocess.run([sys.executable, "-m", "nvs.sweep", str(study), "hydra/launcher=submitit_local",
                           f"hydra.launcher.submitit_folder={tmp_path / 'submitit'}", "--runs", str(tmp_path / "runs"),
                           "--results", str(tmp_path / "results")],
@@ -115,7 +117,8 @@ def test_a_tiny_study_runs_through_submitit_local(objects_root, tmp_path):
     assert "submitit" in res.stderr.lower()  # the launcher that ran the jobs
     assert any((tmp_path / "submitit").rglob("*_result.pkl"))  # submitit's own record of each job
     md = (tmp_path / "results" / "tiny.md").read_text()
-    assert "| copy (reference) | 2/2 |" in md
+    assert "| copy (reference) | 1/1 |" in md and "| gtwarp (reference) | 1/1 |" in md
     rows = list(csv.DictReader(open(tmp_path / "results" / "tiny.csv")))
-    assert [r["status"] for r in rows] == ["done", "done"] and {r["seed"] for r in rows} == {"0", "1"}
-    assert all(float(r["l1"]) > 0 for r in rows)
+    assert [(r["row"], r["status"]) for r in rows] == [("copy", "done"), ("gtwarp", "done")]
+    assert all(float(r["l1"]) > 0 and r["n_pairs"] == "4" for r in rows)
+    assert len(list((tmp_path / "submitit").rglob("*_result.pkl"))) == 2
