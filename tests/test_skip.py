@@ -24,6 +24,9 @@ from tests.conftest import CONF_DIR, compose_train, fixture_batch
 
 F64 = torch.float64
 
+EXACT_WARP = dict(align="exact", padding="zeros", depth_downsample="area", intrinsics_scaling="exact")
+EXACT = WarpedSkips(**EXACT_WARP)
+
 
 def _module(tmp_path, *overrides):
     cfg = compose_train([*overrides, f"paths.root_dir={tmp_path}"])
@@ -104,7 +107,7 @@ def test_the_bound_shrinks_with_the_level_resolution_on_a_forward_motion():
     depth = torch.full((1, 1, 64, 64), 0.5)
     bounds = {}
     for lv, stride in skips_mod.SKIP_STRIDES.items():
-        d, Ks = skips_mod._at_level(lv, torch.zeros(1, 1, 64 // stride, 64 // stride), depth, K)
+        d, Ks = EXACT.at_level(lv, torch.zeros(1, 1, 64 // stride, 64 // stride), depth, K)
         bounds[lv] = float(level_displacement(d, Ks, T)[0])
     assert bounds["conv0"] > 1.0 > 0.5 > bounds["conv4"] > 0
     assert bounds["conv0"] > bounds["conv2"] > bounds["conv3"] > bounds["conv4"]
@@ -119,20 +122,21 @@ def _feats(B=3, seed=0):
 def test_adaptive_skips_with_the_identity_pose_pass_the_features_unwarped_exactly():
     batch = _identity(fixture_batch(B=3))
     feats, depth = _feats(), torch.rand(3, 1, 64, 64) + 1.5
-    adaptive = AdaptiveWarpedSkips()
+    adaptive = AdaptiveWarpedSkips(**EXACT_WARP)
     out = adaptive(feats, depth, batch["K"], batch["T_tgt_src"])
     assert all(torch.equal(out[lv], feats[lv]) for lv in adaptive.levels)
     assert adaptive.skip_fractions()["all"] == 1.0
-    # ... which is what warping computes, up to the identity warp's round-off (tests/test_geometry.py).
-    warped = WarpedSkips()(feats, depth, batch["K"], batch["T_tgt_src"])
+    # ... which is what the exact warp computes, up to the identity warp's round-off (tests/test_geometry.py).
+    warped = WarpedSkips(**EXACT_WARP)(feats, depth, batch["K"], batch["T_tgt_src"])
     assert all(torch.allclose(out[lv], warped[lv], atol=1e-5, rtol=0) for lv in adaptive.levels)
 
 
 def test_network_with_adaptive_skips_and_identity_pose_equals_the_unwarped_network_exactly(tmp_path):
     torch.manual_seed(0)
-    adaptive = _module(tmp_path, "model/skips=adaptive").net.eval()
-    plain = _module(tmp_path, "model/skips=plain").net.eval()
-    warped = _module(tmp_path, "model/skips=warped").net.eval()
+    exact = ("fidelity.warp_align=exact", "fidelity.warp_padding=zeros")  # the code's alignment moves even identity
+    adaptive = _module(tmp_path, "model/skips=adaptive", *exact).net.eval()
+    plain = _module(tmp_path, "model/skips=plain", *exact).net.eval()
+    warped = _module(tmp_path, "model/skips=warped", *exact).net.eval()
     plain.load_state_dict(adaptive.state_dict())
     warped.load_state_dict(adaptive.state_dict())
     batch = _identity(fixture_batch(B=2))
@@ -293,14 +297,15 @@ def test_skip_levels_that_are_off_are_neither_warped_nor_decoded(tmp_path, monke
 
     def counting_warp(src, *args):
         warped.append(tuple(src.shape[-2:]))
-        return inverse_warp(src, *args)
+        return real_warp(src, *args)
 
-    monkeypatch.setattr(skips_mod, "inverse_warp", counting_warp)
+    real_warp = skips_mod.warp
+    monkeypatch.setattr(skips_mod, "warp", counting_warp)
     net = _module(tmp_path, "model/skips=wo_conv0", "loss=[recon]").net
     with torch.no_grad():
         net(fixture_batch())
     assert warped == [(16, 16), (8, 8), (4, 4)]  # conv2, conv3, conv4; never conv0's full resolution
-    assert net.pixel_decoder.s1[0].in_channels == 32 + 3  # no input channels for conv0
+    assert net.pixel_decoder.fuse1[0].in_channels == 32 + 3  # no input channels for conv0
 
 
 def test_every_encoder_stage_is_on_the_path_to_the_latent(tmp_path):
