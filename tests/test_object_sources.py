@@ -113,9 +113,15 @@ def test_identical_geometry_is_rendered_once(tmp_path):
     from nvs.data.render.sources import ModelSource
 
     shapes = {"box-a": (1.0, 0.6, 0.8), "box-b": (1.0, 0.6, 0.8), "box-c": (1.0, 0.3, 0.8), "box-d": (0.5, 1, 1)}
-    sources = [ModelSource(i, i, "test", "CC0", "test", lambda e=e: [_box(*e)]) for i, e in shapes.items()]
+    loads: list[str] = []
+
+    def loader(i, extents):
+        return lambda: loads.append(i) or [_box(*extents)]
+
+    sources = [ModelSource(i, i, "test", "CC0", "test", loader(i, e)) for i, e in shapes.items()]
     meta = render_objects("cars", tmp_path, size=16, supersample=1, progress=False, sources=sources,
                           pairs_per_model=2)
+    assert sorted(loads) == sorted(shapes)  # a full render loads each model once
     used = [m["id"] for m in meta["models"]]
     # Of identical geometries the smallest id is kept, whatever the seeded order.
     assert used == ["box-a", "box-c", "box-d"]

@@ -105,16 +105,6 @@ def _signature_path(root: Path, model: str) -> Path:
     return root / "signatures" / f"{model}.txt"
 
 
-def _signature(root: Path, source: ModelSource) -> str:
-    """The model's geometry signature, cached in signatures/<id>.txt so that a re-run need not load it."""
-    path = _signature_path(root, source.id)
-    if path.is_file():
-        return path.read_text().strip()
-    sig = geometry_signature(normalised(source.load()))
-    write_text(path, sig + "\n")
-    return sig
-
-
 def _report_failure(failed: list[tuple[str, str]], source: ModelSource, err: Exception, progress: bool) -> None:
     from tqdm import tqdm
 
@@ -152,26 +142,39 @@ def render_objects(category: str, out: Path, size: int = 256, seed: int = 0, max
     duplicates: dict[str, str] = {}  # model -> the model with identical geometry that is used instead
     skipped = views = 0
     t0 = time.perf_counter()
-    bar = tqdm(desc=f"render {category} {size}px", unit="model", disable=not progress)
+    fresh: set[str] = set()  # rendered by this run
     try:
-        # Pass 1: geometry signatures of every candidate; of identical geometries the smallest id is kept, so the
-        # kept model does not depend on the seed, max_models or which other sources are present.
+        # Pass 1, in id order: geometry signatures (cached per model); of identical geometries the first, i.e. the
+        # smallest, id is kept, so the kept model does not depend on the seed, max_models or the other sources
+        # present. A full render (no max_models) renders each kept model here, while it is loaded.
         keep: dict[str, str] = {}
-        for source in tqdm(sorted(order, key=lambda m: m.id), desc=f"signatures {category}", unit="model",
+        for source in tqdm(sorted(order, key=lambda m: m.id), desc=f"render {category} {size}px", unit="model",
                            disable=not progress):
+            sig = None
             try:
-                sig = _signature(out, source)
-            except Exception as err:  # a broken model must not stop the dataset; it is named and skipped
-                _report_failure(failed, source, err, progress)
-                continue
-            if sig in keep:
-                duplicates[source.id] = keep[sig]
-            else:
+                sig_file = _signature_path(out, source.id)
+                parts = None
+                if sig_file.is_file():
+                    sig = sig_file.read_text().strip()
+                else:
+                    parts = normalised(source.load())
+                    sig = geometry_signature(parts)
+                    write_text(sig_file, sig + "\n")
+                if sig in keep:
+                    duplicates[source.id] = keep[sig]
+                    continue
                 keep[sig] = source.id
+                if max_models is None and not is_done(out, source.id):
+                    parts = normalised(source.load()) if parts is None else parts
+                    views += _render_model(renderer, out, source.id, parts, supersample)
+                    fresh.add(source.id)
+            except Exception as err:  # a broken model must not stop the dataset; it is named and skipped
+                if sig is not None and keep.get(sig) == source.id:
+                    del keep[sig]  # an identical model later in id order takes its place
+                _report_failure(failed, source, err, progress)
         kept = set(keep.values())
         want = len(kept) if max_models is None else min(max_models, len(kept))
-        bar.total = want
-        # Pass 2: render the kept models in the seeded order until `want` are done.
+        # Pass 2: the kept models in the seeded order until `want` are rendered (max_models takes a seeded sample).
         for source in order:
             if len(used) >= want:
                 break
@@ -179,15 +182,13 @@ def render_objects(category: str, out: Path, size: int = 256, seed: int = 0, max
                 continue
             try:
                 if is_done(out, source.id):
-                    skipped += 1
+                    skipped += source.id not in fresh
                 else:
                     views += _render_model(renderer, out, source.id, normalised(source.load()), supersample)
                 used.append(source)
-                bar.update(1)
             except Exception as err:
                 _report_failure(failed, source, err, progress)
     finally:
-        bar.close()
         renderer.close()
     seconds = time.perf_counter() - t0
     ids = sorted(m.id for m in used)
