@@ -405,3 +405,27 @@ def test_sweep_with_an_unwritable_results_directory_is_one_line(tmp_path, capsys
                                             "paths.log_dir=...)")
     assert not (tmp_path / "runs").exists()
 
+
+
+@pytest.mark.slow
+def test_sigterm_through_the_command_line_exits_143_and_the_printed_command_resumes(objects_root, tmp_path):
+    import shlex
+    import subprocess
+
+    run_dir = tmp_path / "run"
+    args = [f"data.root={objects_root}", f"hydra.run.dir={run_dir}", *TRAIN, *SMALL, "trainer.max_steps=3",
+            "trainer.val_check_interval=3"]
+    kill = ["+callbacks.kill._target_=tests.test_reliability.SignalAt", "+callbacks.kill.step=1",
+            "+callbacks.kill.signum=15"]
+    res = subprocess.run([sys.executable, "-m", "nvs.train", *args, *kill], cwd=REPO, capture_output=True, text=True,
+                         timeout=900)
+    line = res.stderr.strip().splitlines()[-1]
+    assert res.returncode == 143 and "Traceback" not in res.stderr, res.stderr[-3000:]
+    assert line.startswith(f"interrupted by SIGTERM at step 1: saved {run_dir / 'checkpoints' / 'last.ckpt'}; "
+                           "resume with: python -m nvs.train ")
+    command = shlex.split(line.split("resume with: ", 1)[1])
+    assert command[:3] == ["python", "-m", "nvs.train"] and f"hydra.run.dir={run_dir}" in command
+    resumed = subprocess.run([sys.executable, *command[1:]], cwd=REPO, capture_output=True, text=True, timeout=900)
+    # the printed command still holds the test's kill callback: it fires again only at step 1, which is past
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert json.loads((run_dir / "metrics.json").read_text())["steps"] == 3
