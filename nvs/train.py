@@ -122,7 +122,7 @@ class _Interruption(L.Callback):
             for cb in trainer.checkpoint_callbacks:  # the resumed callback then writes last.ckpt, not last-v1.ckpt
                 if Path(cb.dirpath or "") == self.last.parent:
                     cb.last_model_path = str(self.last)
-            trainer.save_checkpoint(self.last)
+            trainer.save_checkpoint(self.last, weights_only=False)
         return True
 
     def on_train_start(self, trainer, pl_module):
