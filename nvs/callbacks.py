@@ -26,13 +26,16 @@ class StepProgressBar(TQDMProgressBar):
     (averaged over them, validation time included).
     """
 
+    @property
+    def train_description(self) -> str:
+        return "train steps"
+
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         super().on_train_start(trainer, pl_module)
         bar = self.train_progress_bar
         total = trainer.estimated_stepping_batches
         bar.reset(total=None if total == float("inf") else int(total))
         bar.initial = bar.n = trainer.global_step
-        bar.set_description("train steps")
         bar.refresh()
 
     def on_train_epoch_start(self, trainer: L.Trainer, *_: Any) -> None:

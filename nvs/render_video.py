@@ -30,7 +30,7 @@ def render(cfg: DictConfig) -> list[Path]:
     views = render_views(session, source.key, poses, progress=bool(cfg.progress))
     frames = compose_frames(views, scale=int(cfg.scale))
     name = cfg.name or f"{cfg.path}_{file_stem(source.label)}"
-    return write_video(Path(cfg.out_dir) / name, frames, float(cfg.fps), list(cfg.formats))
+    return write_video(Path(cfg.out_dir) / name, frames, float(cfg.fps), list(cfg.formats), int(cfg.gif_colors))
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="render_video")

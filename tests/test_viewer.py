@@ -208,6 +208,34 @@ def test_load_script_measures_views_through_the_endpoint(viewer_url):
     assert result["model_median_ms"] <= result["server_median_ms"] <= result["median_ms"]
 
 
+def test_point_cloud_and_video_endpoints(viewer_url, tmp_path):
+    import base64
+    import urllib.error
+    import urllib.request
+
+    import imageio_ffmpeg
+
+    from nvs.pointcloud import read_ply
+
+    with urllib.request.urlopen(f"{viewer_url}api/ply?source=g1&azimuth=20&elevation=10", timeout=60) as r:
+        assert r.headers["Content-Disposition"].startswith('attachment; filename="') and ".ply" in \
+            r.headers["Content-Disposition"]
+        xyz, rgb = read_ply(io.BytesIO(r.read()))
+    assert xyz.shape == (64 * 64, 3) and rgb.shape == (64 * 64, 3) and (xyz[:, 2] > 0).all()
+    with urllib.request.urlopen(f"{viewer_url}api/video?source=g0&path=orbit&frames=5&fps=10", timeout=120) as r:
+        clip = json.loads(r.read())
+    assert clip["frames"] == 5
+    gif = base64.b64decode(clip["gif"].split(",", 1)[1])
+    with Image.open(io.BytesIO(gif)) as im:
+        assert im.n_frames == 5 and im.size == (256, 128)  # view | depth, 64² upscaled 2x
+    mp4 = tmp_path / "v.mp4"
+    mp4.write_bytes(base64.b64decode(clip["mp4"].split(",", 1)[1]))
+    assert imageio_ffmpeg.count_frames_and_secs(str(mp4))[0] == 5
+    with pytest.raises(urllib.error.HTTPError) as err:  # objects have no forward path: one clear error
+        urllib.request.urlopen(f"{viewer_url}api/video?source=g0&path=forward&frames=5", timeout=60)
+    assert err.value.code == 400 and "path=forward" in json.loads(err.value.read())["error"]
+
+
 @pytest.mark.skipif(not CHROMIUM.is_file(), reason="needs Debian's chromium at /usr/bin/chromium "
                                                     "(scripts/install_assets.sh installs it)")
 def test_browser_drag_changes_the_view_and_a_bad_upload_shows_an_error(viewer_url):
@@ -249,6 +277,20 @@ def test_browser_drag_changes_the_view_and_a_bad_upload_shows_an_error(viewer_ur
         page.set_input_files("#upload", files=[{"name": "photo.png", "mimeType": "image/png", "buffer": _png(photo)}])
         page.wait_for_function(idle.format(views + 1), timeout=30_000)
         expect(page.locator("#source-label")).to_have_text("photo.png")
+        expect(page.locator("#error")).to_be_hidden()
+
+        # Export: the point-cloud button downloads a PLY of this view; the video button shows the clip.
+        with page.expect_download(timeout=30_000) as download:
+            page.click("#ply-button")
+        assert download.value.suggested_filename.startswith("photo_") and \
+            download.value.suggested_filename.endswith(".ply")
+        page.fill("#video-frames", "4")
+        page.click("#video-button")
+        page.wait_for_function("document.body.dataset.video === 'done'", timeout=60_000)
+        expect(page.locator("#video-figure")).to_be_visible()
+        expect(page.locator("#video-note")).to_contain_text("4 frames")
+        assert page.get_attribute("#video", "src").startswith("data:image/gif")
+        assert page.get_attribute("#video-mp4", "href").startswith("data:video/mp4")
         expect(page.locator("#error")).to_be_hidden()
         browser.close()
     assert not page_errors

@@ -67,23 +67,29 @@ def write_mp4(out: Path, frames: list[np.ndarray], fps: float) -> Path:
     return out
 
 
-def write_gif(out: Path | io.BytesIO, frames: list[np.ndarray], fps: float) -> Path | io.BytesIO:
-    """Looping GIF, one adaptive palette per frame."""
-    images = [Image.fromarray(f) for f in frames]
+def write_gif(out: Path | io.BytesIO, frames: list[np.ndarray], fps: float, colors: int = 256) -> Path | io.BytesIO:
+    """Looping GIF, one adaptive palette of ``colors`` (2..256; fewer: a smaller file) per frame.
+
+    GIF stores frame durations in 1/100 s, so the frame rate is rounded to that.
+    """
+    if not 2 <= colors <= 256:
+        raise UserError(f"gif colors={colors}: expected 2..256")
+    images = [Image.fromarray(f).quantize(colors=colors, method=Image.Quantize.MEDIANCUT) for f in frames]
     if isinstance(out, Path):
         out.parent.mkdir(parents=True, exist_ok=True)
     images[0].save(out, format="GIF", save_all=True, append_images=images[1:], duration=round(1000 / fps), loop=0)
     return out
 
 
-def write_video(out_stem: Path, frames: list[np.ndarray], fps: float, formats: Iterable[str]) -> list[Path]:
+def write_video(out_stem: Path, frames: list[np.ndarray], fps: float, formats: Iterable[str],
+                gif_colors: int = 256) -> list[Path]:
     """``<out_stem>.mp4`` and/or ``<out_stem>.gif``."""
     written = []
     for fmt in formats:
         if fmt == "mp4":
             written.append(write_mp4(out_stem.with_suffix(".mp4"), frames, fps))
         elif fmt == "gif":
-            written.append(write_gif(out_stem.with_suffix(".gif"), frames, fps))
+            written.append(write_gif(out_stem.with_suffix(".gif"), frames, fps, gif_colors))
         else:
             raise UserError(f"formats: {fmt!r} is not one of mp4, gif")
     return written

@@ -1,0 +1,133 @@
+"""Loggers (csv, tensorboard, wandb offline; multi-select), the validation image grid, the step progress bar, and
+the start-up noise that is silenced (and only that)."""
+
+from __future__ import annotations
+
+import logging
+import re
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import pytest
+import torch
+from hydra.utils import instantiate
+from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger, WandbLogger
+from PIL import Image
+
+from nvs.callbacks import StepProgressBar
+from nvs.quiet import silence_known_noise
+from nvs.visuals import image_grid
+from tests.conftest import compose_train
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_loggers_multi_select_and_wandb_is_offline(tmp_path):
+    cfg = compose_train([f"paths.output_dir={tmp_path}", "logger=[csv,tensorboard,wandb]"])
+    assert list(cfg.logger) == ["csv", "tensorboard", "wandb"]
+    assert cfg.logger.wandb.offline is True and cfg.logger.wandb.log_model is False
+    loggers = [instantiate(c) for c in cfg.logger.values()]
+    assert [type(lg) for lg in loggers] == [CSVLogger, TensorBoardLogger, WandbLogger]
+    assert compose_train(["logger=tensorboard"]).logger.keys() == {"tensorboard"}
+
+
+def test_image_grid_rows_are_samples_and_columns_source_target_prediction_depth():
+    src, tgt, pred = (torch.full((2, 3, 8, 8), v) for v in (0.0, 0.5, 1.0))
+    depth = torch.arange(64.0).view(1, 1, 8, 8).repeat(2, 1, 1, 1)  # far at the bottom right
+    grid = image_grid([src, tgt, pred, depth], scale=2, pad=2)
+    assert grid.shape == (3, 2 * (16 + 2) + 2, 4 * (16 + 2) + 2)
+    tile = lambda row, col: grid[:, 2 + row * 18:2 + row * 18 + 16, 2 + col * 18:2 + col * 18 + 16]  # noqa: E731
+    assert torch.all(tile(1, 0) == 0) and torch.all(tile(1, 1) == 0.5) and torch.all(tile(0, 2) == 1)
+    d = tile(0, 3)
+    assert d[:, 0, 0].tolist() == [1.0, 1.0, 1.0] and d[:, -1, -1].tolist() == [0.0, 0.0, 0.0]  # near = bright
+
+
+class _Tiny(L.LightningModule):
+    def __init__(self):
+        super().__init__()
+        self.lin = torch.nn.Linear(2, 1)
+
+    def training_step(self, batch, batch_idx):
+        return self.lin(batch[0]).pow(2).mean()
+
+    def configure_optimizers(self):
+        return torch.optim.SGD(self.parameters(), lr=0.01)
+
+
+def test_progress_bar_counts_steps_toward_max_steps_across_epochs(tmp_path, capsys):
+    data = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.randn(6, 2)), batch_size=2)  # 3 per epoch
+    trainer = L.Trainer(max_steps=7, max_epochs=-1, callbacks=[StepProgressBar()], logger=False,
+                        enable_checkpointing=False, enable_model_summary=False, default_root_dir=tmp_path)
+    trainer.fit(_Tiny(), data)
+    out = capsys.readouterr().out
+    assert trainer.current_epoch >= 2  # three epochs ran ...
+    assert "train steps" in out and "7/7" in out  # ... on one bar, counting steps toward max_steps
+    assert "3/3" not in out and "Epoch 1" not in out and "Training" not in out  # not Lightning's per-epoch bar
+    assert re.search(r"train steps:[^\r]*? [1-6]/7 \[\d\d:\d\d<\d\d:\d\d", out)  # elapsed<remaining: an ETA
+
+
+def test_silence_drops_exactly_the_listed_noise(caplog):
+    silence_known_noise()
+    rank_zero = logging.getLogger("lightning.pytorch.utilities.rank_zero")
+    with warnings.catch_warnings(record=True) as seen, caplog.at_level(logging.INFO):
+        silence_known_noise()  # catch_warnings reset the filters: install them again inside
+        warnings.simplefilter("always")
+        silence_known_noise()
+        rank_zero.info("💡 Tip: For seamless cloud logging, try installing [litlogger](...)")
+        rank_zero.info("💡 Tip: For seamless cloud uploads and versioning, try installing [litmodels](...)")
+        rank_zero.info("Restoring states from the checkpoint path")
+        warnings.warn("`isinstance(treespec, LeafSpec)` is deprecated, use ...", FutureWarning)
+        warnings.warn("Found 13 module(s) in eval mode at the start of training. This may ...", UserWarning)
+        warnings.warn("The dataloader does not have many workers", UserWarning)
+    assert [r.getMessage() for r in caplog.records if r.name == rank_zero.name] == [
+        "Restoring states from the checkpoint path"]
+    assert [str(w.message) for w in seen] == ["The dataloader does not have many workers"]
+
+
+def test_a_run_logs_to_tensorboard_wandb_offline_and_csv_with_the_image_grid(objects_root, tmp_path):
+    """A real ``python -m nvs.train`` with all three loggers: scalars under the same names in each, val/grid at each
+    validation, the step bar with its ETA, and none of the silenced start-up noise."""
+    cmd = [sys.executable, "-m", "nvs.train", f"data.root={objects_root}", f"paths.log_dir={tmp_path}",
+           "logger=[csv,tensorboard,wandb]", "trainer.max_steps=4", "trainer.val_check_interval=2",
+           "trainer.log_every_n_steps=1", "data.loader.batch_size=2", "loss=[recon,vgg]", "test=false"]
+    res = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    run_dir = next(tmp_path.rglob("metrics.json")).parent
+    scalars = {"train/loss/recon", "train/loss/vgg", "train/loss/total", "val/l1", "val/ssim_paper"}
+
+    # TensorBoard: the event file's tags
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    (events,) = (run_dir / "tensorboard").glob("events.out.tfevents.*")
+    acc = EventAccumulator(str(events), size_guidance={"images": 0})
+    acc.Reload()
+    assert scalars <= set(acc.Tags()["scalars"]) and acc.Tags()["images"] == ["val/grid"]
+    assert [e.step for e in acc.Images("val/grid")] == [2, 4]  # each validation, not the sanity check
+    assert len(acc.Scalars("train/loss/total")) == 4
+
+    # W&B offline: the run's files, the same keys in its record log, the grid as media
+    (wandb_run,) = (run_dir / "wandb").glob("offline-run-*")
+    (record,) = wandb_run.glob("run-*.wandb")
+    data = record.read_bytes()
+    assert all(key.encode() in data for key in scalars | {"val/grid", "trainer/global_step"})
+    grids = sorted((wandb_run / "files" / "media" / "images" / "val").glob("grid_*.png"))
+    assert len(grids) == 2
+
+    # CSV: the same scalar names, and the grid as PNGs beside it
+    header = (run_dir / "csv" / "metrics.csv").read_text().splitlines()[0].split(",")
+    assert scalars <= set(header)
+    pngs = sorted((run_dir / "csv" / "images").glob("val_grid_step*.png"))
+    assert [p.name for p in pngs] == ["val_grid_step0000002.png", "val_grid_step0000004.png"]
+    grid = np.asarray(Image.open(pngs[0]))
+    assert grid.shape == (4 * (128 + 2) + 2, 4 * (128 + 2) + 2, 3)  # 4 pairs x 4 columns, 64² tiles upscaled 2x
+    assert not np.array_equal(np.asarray(Image.open(pngs[1])), grid)  # the prediction changed with training
+
+    # the bar counts steps toward max_steps with an ETA; the listed noise is gone, other output stays
+    assert "train steps" in res.stdout and "4/4" in res.stdout and re.search(r"[1-3]/4 \[\d\d:\d\d<", res.stdout)
+    noise = ("litlogger", "litmodels", "LeafSpec", "module(s) in eval mode")
+    assert not [n for n in noise if n in res.stdout + res.stderr]
+    assert "`Trainer.fit` stopped: `max_steps=4` reached." in res.stderr
