@@ -164,14 +164,18 @@ def test_extracted_models_load_textured_and_front_along_z(source, kind):
             assert length_axis(parts) == "z", m.id
 
 
-def test_stk_licence_is_read_from_the_node_block():
-    from nvs.data.render.stk_objects import licence_of
+def test_licence_per_file_from_the_debian_copyright_file():
+    """DEP-5: the last Files paragraph with a matching pattern gives holders and licence; 'Files: *' is the default."""
+    from nvs.data.render.sources import dep5_licence
 
-    text = ("Files:\n data/library/stklib_a/*\n data/library/stklib_b/*\nCopyright:\n 2016 Someone\n 2017 Other\n"
-            "License: CC-BY-SA-3.0\n\nFiles: data/library/stklib_c/*\nCopyright: 2014 Third\nLicense: CC0\n")
-    assert licence_of("stklib_b", text) == ("2016 Someone 2017 Other", "CC-BY-SA-3.0")
-    assert licence_of("stklib_c", text) == ("2014 Third", "CC0")
-    assert licence_of("stklib_missing", text) == ("see copyright", "see copyright")
+    text = ("Format: https://example/copyright-format/1.0/\n\nFiles: *\nCopyright: 2002 The Team\nLicense: GPL-2+\n\n"
+            "Files:\n data/library/stklib_a/*\n data/library/stklib_b/*\nCopyright:\n 2016 Someone\n 2017 Other\n"
+            "License: CC-BY-SA-3.0\n\nFiles: data/library/stklib_c/*\nCopyright: 2014 Third\nLicense: CC0\n"
+            " Some licence text.\n")
+    assert dep5_licence(text, "data/library/stklib_b/b_main.spm") == ("2016 Someone 2017 Other", "CC-BY-SA-3.0")
+    assert dep5_licence(text, "data/library/stklib_c/c.spm") == ("2014 Third", "CC0")
+    assert dep5_licence(text, "data/other/x.png") == ("2002 The Team", "GPL-2+")
+    assert dep5_licence("Format: x\n", "a/b") == ("see copyright", "see copyright")
 
 
 def test_source_sheets_need_a_rendered_root(tmp_path, capsys):

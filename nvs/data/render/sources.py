@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import fnmatch
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -78,3 +79,19 @@ def ac3d_parts(path: Path, texture_dirs: list[Path], keep=lambda obj: True) -> l
             rgb = model.material_rgb[key[1]]
             parts.append(Part(pos, faces, None, None, np.array([*rgb, 1.0])))
     return parts
+
+
+def dep5_licence(copyright_text: str, path: str) -> tuple[str, str]:
+    """(copyright holders, licence) of `path` in a machine-readable Debian copyright file: the last Files
+    paragraph with a matching pattern wins, as the format specifies; ('see copyright',) * 2 when none matches."""
+    found = ("see copyright", "see copyright")
+    field = r"^{}:(.*?)(?=^\S|\Z)"
+    for para in re.split(r"\n[ \t]*\n", copyright_text):
+        files = re.search(field.format("Files"), para, re.S | re.M)
+        if files is None or not any(fnmatch.fnmatchcase(path, p) for p in files.group(1).split()):
+            continue
+        holders = re.search(field.format("Copyright"), para, re.S | re.M)
+        licence = re.search(r"^License:[ \t]*(.+)$", para, re.M)
+        found = (" ".join(holders.group(1).split()) if holders else "see copyright",
+                 licence.group(1).strip() if licence else "see copyright")
+    return found

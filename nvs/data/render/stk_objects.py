@@ -9,14 +9,13 @@ the renders (FRONT below).
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import numpy as np
 
 from nvs.data.render.orient import facing, length_axis
 from nvs.data.render.scene import Part
-from nvs.data.render.sources import ModelSource, read_texture, slug
+from nvs.data.render.sources import ModelSource, dep5_licence, read_texture, slug
 from nvs.data.render.spm import read_spm
 
 PACKAGE = "supertuxkart-data"
@@ -59,17 +58,6 @@ def spm_parts(path: Path) -> list[Part]:
     return parts
 
 
-def licence_of(node: str, copyright_text: str) -> tuple[str, str]:
-    """(copyright holders, licence) of a library node from the Debian copyright file's Files blocks."""
-    for block in copyright_text.split("\n\n"):
-        if f"data/library/{node}/" in block:
-            lic = re.search(r"^License:\s*(.+)$", block, re.M)
-            holders = re.search(r"^Copyright:(.*?)(?=^\S)", block + "\nEnd", re.M | re.S)
-            who = " ".join(holders.group(1).split()) if holders else "see copyright"
-            return who, lic.group(1).strip() if lic else "see copyright"
-    return "see copyright", "see copyright"
-
-
 def _loader(key: str, path: Path, car: bool):
     def load() -> list[Part]:
         parts = spm_parts(path)
@@ -90,7 +78,7 @@ def stk_models(kind: str) -> list[ModelSource]:
         path = LIBRARY / rel
         if not path.is_file():
             continue
-        who, lic = licence_of(key.split("/")[0], text)
+        who, lic = dep5_licence(text, f"data/library/{rel}")
         out.append(ModelSource(slug("stk", key.replace("stklib_", "")), key, PACKAGE, f"{lic} (supertuxkart-data)",
                                f"SuperTuxKart library object data/library/{rel}, (c) {who}",
                                _loader(key, path, kind == "cars")))

@@ -16,13 +16,12 @@ import numpy as np
 from nvs.data.render.md2 import read_md2
 from nvs.data.render.orient import FRONT_AXES, facing, length_axis
 from nvs.data.render.scene import Part
-from nvs.data.render.sources import ASSET_DIR, ModelSource, read_texture, slug
+from nvs.data.render.sources import ASSET_DIR, ModelSource, dep5_licence, read_texture, slug
 
 PACKAGE = "ufoai-data"
 ROOT = ASSET_DIR / PACKAGE
 OBJECTS = ROOT / "usr/share/games/ufoai/base/models/objects"
 COPYRIGHT = ROOT / "usr/share/doc/ufoai-data/copyright"
-LICENCE = "GPL-2+ / CC-BY-SA / CC0 per file (ufoai-data copyright)"
 
 # (body md2, wheel md2s) relative to models/objects/. Not cars: the box trailer, the optional roof racks, the
 # armoured 'puma' (a turret gun).
@@ -92,12 +91,14 @@ def _loader(body: str, wheels: list[str]):
 def ufoai_models(kind: str) -> list[ModelSource]:
     """The UFO:AI cars ('cars') or chairs ('chairs') present under data/assets (none when not extracted)."""
     table = CARS if kind == "cars" else CHAIRS
+    text = COPYRIGHT.read_text(errors="replace") if COPYRIGHT.is_file() else ""
     out = []
     for body, wheels in table.items():
         if not (OBJECTS / f"{body}.md2").is_file():
             continue
         name = body.split("/", 1)[1]
-        out.append(ModelSource(slug("ufoai", name), name, PACKAGE, LICENCE,
-                               f"UFO:AI map object models/objects/{body}.md2 (base/0models.pk3)",
+        who, lic = dep5_licence(text, f"base/models/objects/{body}.md2")
+        out.append(ModelSource(slug("ufoai", name), name, PACKAGE, f"{lic} (ufoai-data)",
+                               f"UFO:AI map object models/objects/{body}.md2 (base/0models.pk3), (c) {who}",
                                _loader(body, wheels)))
     return out
