@@ -122,3 +122,12 @@ def test_a_tiny_study_runs_through_submitit_local(objects_root, tmp_path):
     assert [(r["row"], r["status"]) for r in rows] == [("copy", "done"), ("gtwarp", "done")]
     assert all(float(r["l1"]) > 0 and r["n_pairs"] == "4" for r in rows)
     assert len(list((tmp_path / "submitit").rglob("*_result.pkl"))) == 2
+
+
+def test_gathered_rows_are_each_pair_once_in_dataset_order():
+    from nvs.gather import gather_rows
+
+    # what two ranks hold for 5 items: rank 0 reads 0, 2, 4; rank 1 reads 1, 3 and the padding repeat of 0
+    rank0 = [{"index": i, "l1": float(i)} for i in (0, 2, 4)]
+    rank1 = [{"index": i, "l1": float(i)} for i in (1, 3, 0)]
+    assert gather_rows(rank0 + rank1) == [{"l1": float(i)} for i in range(5)]
