@@ -79,7 +79,7 @@ def split_overrides(overrides: Sequence[str], groups: Collection[str]) -> tuple[
         except HydraException:
             continue  # Hydra reports malformed overrides itself, before any entry point runs
         key = ov.key_or_group
-        if key in groups or key == "hydra.searchpath":  # a config folder outside conf/ (docs/extending.md)
+        if key in groups:
             selections.append(line)
         elif ov.is_sweep_override() or ov.is_delete() or ov.is_add() or key.split(".")[0] in _SKIPPED_ROOTS:
             continue
