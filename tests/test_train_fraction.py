@@ -61,6 +61,6 @@ def test_bad_fraction_is_one_clear_error(root, bad):
 
 
 def test_fraction_is_for_objects_only(scenes_root):
-    cfg = compose_train(["data=drive", f"data.root={scenes_root}", "data.size=64", "+data.train_fraction=0.5"])
+    cfg = compose_train(["data=drive", f"data.root={scenes_root}", "data.size=64", "++data.train_fraction=0.5"])
     with pytest.raises(UserError, match="data.train_fraction"):
         build_data(cfg)
