@@ -19,6 +19,7 @@ from nvs.build import build_data, build_module, device_name, git_sha, parameter_
 from nvs.config_check import check_cli_overrides, model_mismatch
 from nvs.errors import UserError, exits_cleanly, user_message
 from nvs.module import NVSModule
+from nvs.quiet import silence_known_noise
 from nvs.run_files import (check_creatable, check_writable, is_global_zero, remove_unstarted_run, run_dir_of,
                            summary_line, write_metrics, write_per_image)
 
@@ -101,7 +102,8 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
         check_writable(out_dir)
     placement = OmegaConf.to_container(cfg.trainer) if cfg.get("trainer") else {}
     try:
-        trainer = L.Trainer(**placement, precision=precision, logger=False, enable_progress_bar=False,
+        # Lightning's test bar: batches of test pairs, elapsed and ETA (+trainer.enable_progress_bar=false: none)
+        trainer = L.Trainer(**{"enable_progress_bar": True, **placement}, precision=precision, logger=False,
                             enable_model_summary=False)
     except Exception as err:  # noqa: BLE001 - a placement the Trainer refuses (devices, strategy) is the user's
         raise UserError(f"config 'trainer': {user_message(err) or f'{err.__class__.__name__}: {err}'}") from None
@@ -134,6 +136,7 @@ def main(cfg: DictConfig) -> None:
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
         check_cli_overrides("evaluate", HydraConfig.get().overrides.task)
+        silence_known_noise()
         out_dir = Path(cfg.out_dir)
         result = evaluate(cfg, out_dir)
     except BaseException:
