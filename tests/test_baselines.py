@@ -23,6 +23,8 @@ from tests.conftest import compose_train, fixture_batch
 
 REPO = Path(__file__).resolve().parents[1]
 BASELINES = ["tatarchenko", "chen", "sun"]
+# Learning rates that fit a few steps; Sun et al.'s net has no norm layers and diverges at 1e-3 (theirs: 1e-4).
+FAST_LR = {"tatarchenko": 1e-3, "chen": 1e-3, "sun": 3e-4}
 
 
 def _module(name: str, tmp_path, *overrides, data: str = "chairs"):
@@ -265,7 +267,7 @@ def test_sun_flow_is_in_their_units_and_their_layers_are_there():
 # -- training ---------------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("name", BASELINES)
 def test_loss_falls_in_a_few_steps(name, tmp_path):
-    losses = _train(_module(name, tmp_path, "optim.lr=1e-3"), _view_pair(), 8)
+    losses = _train(_module(name, tmp_path, f"optim.lr={FAST_LR[name]}"), _view_pair(), 8)
     assert all(math.isfinite(v) for v in losses)
     assert min(losses[-3:]) < 0.9 * losses[0], losses
 
@@ -273,7 +275,7 @@ def test_loss_falls_in_a_few_steps(name, tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", BASELINES)
 def test_overfits_one_batch(name, tmp_path):
-    losses = _train(_module(name, tmp_path, "optim.lr=1e-3"), _view_pair(), 50)
+    losses = _train(_module(name, tmp_path, f"optim.lr={FAST_LR[name]}"), _view_pair(), 50)
     assert min(losses[-5:]) < 0.6 * losses[0], losses[::5]
 
 
