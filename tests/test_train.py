@@ -160,7 +160,8 @@ def test_onecycle_schedule_warms_up_then_anneals_over_max_steps(tmp_path):
 def test_conv0_norm_option_keeps_colour_levels_in_the_full_resolution_skip():
     from nvs.models.encoder import Encoder
 
-    paper, plain = Encoder(64), Encoder(64, conv0_norm="none")
+    # reflect padding: with the code's zero padding the border pixels do see the shift, through the padding
+    paper, plain = Encoder(64, conv0_padding="reflect"), Encoder(64, conv0_norm="none", conv0_padding="reflect")
     assert any(isinstance(m, torch.nn.InstanceNorm2d) for m in paper.conv0.modules())
     assert not any(isinstance(m, torch.nn.InstanceNorm2d) for m in plain.conv0.modules())
     assert any(isinstance(m, torch.nn.InstanceNorm2d) for m in plain.conv2.modules())  # only conv0 changes
