@@ -1,5 +1,5 @@
 """docs/extending.md's worked example, run as the page writes it: a method, its loss and a dataset converter that
-live outside nvs/ (examples/extending), trained for a few steps and evaluated through the real entry point."""
+live outside nvs/ (docs/extending), trained for a few steps and evaluated through the real entry point."""
 
 from __future__ import annotations
 
@@ -17,14 +17,14 @@ from PIL import Image
 
 REPO = Path(__file__).resolve().parents[1]
 DOC = REPO / "docs" / "extending.md"
-EXAMPLE = REPO / "examples" / "extending"
+EXAMPLE = REPO / "docs" / "extending"
 
 
 def _doc_commands() -> dict[str, list[str]]:
     """The page's two commands (converter, training), split into argv after their PYTHONPATH prefix."""
     block = re.search(r"## 4\. Train, evaluate, view\n\n```bash\n(.*?)```", DOC.read_text(), re.S).group(1)
     lines = [ln for ln in block.splitlines() if ln.strip()]
-    assert all(ln.startswith("PYTHONPATH=examples/extending python -m ") for ln in lines), lines
+    assert all(ln.startswith("PYTHONPATH=docs/extending python -m ") for ln in lines), lines
     argv = [shlex.split(ln.split(" ", 1)[1]) for ln in lines]
     return {a[2]: a for a in argv}  # by module: mynvs.turntable, nvs.train
 
