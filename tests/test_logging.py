@@ -59,6 +59,7 @@ class _Tiny(L.LightningModule):
 
 
 def test_progress_bar_counts_steps_toward_max_steps_across_epochs(tmp_path, capsys):
+    silence_known_noise()
     data = torch.utils.data.DataLoader(torch.utils.data.TensorDataset(torch.randn(6, 2)), batch_size=2)  # 3 per epoch
     trainer = L.Trainer(max_steps=7, max_epochs=-1, callbacks=[StepProgressBar()], logger=False,
                         enable_checkpointing=False, enable_model_summary=False, default_root_dir=tmp_path)
