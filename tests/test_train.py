@@ -176,5 +176,6 @@ def test_conv0_norm_option_keeps_colour_levels_in_the_full_resolution_skip():
 
 def test_demo_trains_the_authors_network(tmp_path):
     cfg = compose_train(["experiment=demo"])
-    assert cfg.model.name == "nvs" and cfg.model.conv0_norm == "instance" and cfg.fidelity == compose_train().fidelity
+    code = dict(compose_train().fidelity)
+    assert cfg.model.name == "nvs" and dict(cfg.fidelity) == {**code, "vgg_size": None}  # the one budget choice
     assert list(cfg.loss) == ["recon", "vgg", "depth_consistency", "edge_smooth", "warp"]
