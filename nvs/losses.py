@@ -11,6 +11,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from nvs.errors import UserError
+from nvs.models.blocks import UPSAMPLES, check_choice, upsample_side
 from nvs.models.net import Extras, to_model_range
 from nvs.types import Batch, Outputs
 
@@ -31,13 +32,6 @@ class LossTerm(nn.Module):
 
 
 IMAGE_RANGES = ("model", "image")  # model: [-1,1] (what the authors' code feeds its losses); image: [0,1]
-SIDE_UPSAMPLES = ("nearest", "bilinear")
-
-
-def _check(value, choices, name: str):
-    if value not in choices:
-        raise ValueError(f"{name}={value!r}: choose one of {list(choices)}")
-    return value
 
 
 class ReconLoss(LossTerm):
@@ -52,7 +46,7 @@ class ReconLoss(LossTerm):
         self.scale_weights = [float(w) for w in scale_weights]
         if not self.scale_weights:
             raise ValueError("scale_weights must list at least the final scale")
-        self.side_upsample = _check(side_upsample, SIDE_UPSAMPLES, "side_upsample")
+        self.side_upsample = check_choice(side_upsample, UPSAMPLES, "side_upsample")
 
     def forward(self, out: Outputs, batch: Batch) -> torch.Tensor:
         tgt = to_model_range(batch["tgt"])
@@ -62,11 +56,7 @@ class ReconLoss(LossTerm):
                             f"{len(preds)} scale(s); use loss=[recon_final,...] or loss.recon.scale_weights=[1.0]")
         total = tgt.new_zeros(())
         for w, p in zip(self.scale_weights, preds):
-            if p.shape[-2:] != tgt.shape[-2:]:
-                if self.side_upsample == "nearest":
-                    p = F.interpolate(p, size=tgt.shape[-2:], mode="nearest")
-                else:
-                    p = F.interpolate(p, size=tgt.shape[-2:], mode="bilinear", align_corners=False)
+            p = upsample_side(p, tuple(tgt.shape[-2:]), self.side_upsample)
             total = total + w * (up(p) - tgt).abs().mean()
         return total
 
@@ -84,7 +74,7 @@ class VGGLoss(LossTerm):
         super().__init__(weight)
         from nvs.models.vgg import VGG16Features
 
-        self.image_range = _check(image_range, IMAGE_RANGES, "vgg_range")
+        self.image_range = check_choice(image_range, IMAGE_RANGES, "vgg_range")
         if size is not None and (not isinstance(size, int) or size < 32):
             raise ValueError(f"vgg_size={size!r}: an image size of at least 32, or null for the native size")
         self.size = size
@@ -140,7 +130,7 @@ class EdgeSmoothLoss(LossTerm):
         if not factor >= 0:
             raise ValueError(f"smooth_factor={factor!r}: must be >= 0")
         self.factor = float(factor)
-        self.image_range = _check(image_range, IMAGE_RANGES, "smooth_range")
+        self.image_range = check_choice(image_range, IMAGE_RANGES, "smooth_range")
         # The source term is a build-time choice: two classes of pairs, one loop.
         self.pairs = (("depth", "tgt"), (Extras.DEPTH_SRC, "src")) if on_source else (("depth", "tgt"),)
         self.needs = frozenset({Extras.DEPTH_SRC}) if on_source else frozenset()
@@ -165,7 +155,7 @@ class WarpLoss(LossTerm):
 
     def __init__(self, weight: float = 10.0, pixels: str = "all"):
         super().__init__(weight)
-        self.masked = _check(pixels, ("all", "valid"), "warp_loss_pixels") == "valid"
+        self.masked = check_choice(pixels, ("all", "valid"), "warp_loss_pixels") == "valid"
 
     def forward(self, out: Outputs, batch: Batch) -> torch.Tensor:
         diff = (to_model_range(up(out[Extras.WARPED_SRC])) - to_model_range(batch["tgt"])).abs()
