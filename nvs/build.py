@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import subprocess
-from pathlib import Path
 
 import torch
 from hydra.errors import InstantiationException
@@ -14,6 +12,7 @@ from nvs import fidelity
 from nvs.data.datamodule import NVSDataModule, build_datamodule
 from nvs.errors import UserError
 from nvs.module import NVSModule
+from nvs.provenance import device_name, git_sha  # noqa: F401 - re-exported until every caller imports nvs.provenance
 
 
 def _instantiate(node, key: str, **kwargs):
@@ -66,32 +65,3 @@ def build_module(cfg: DictConfig) -> NVSModule:
 def parameter_count(module: torch.nn.Module) -> int:
     """Trainable parameters of the network (frozen loss networks such as VGG excluded)."""
     return sum(p.numel() for p in module.parameters() if p.requires_grad)
-
-
-def git_sha() -> str:
-    try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5,
-                             cwd=Path(__file__).resolve().parent)
-        sha = out.stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
-                               text=True, timeout=5, cwd=Path(__file__).resolve().parent).stdout.strip()
-        return (sha + ("-dirty" if dirty else "")) if sha else "unknown"
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-
-
-def device_name(accelerator_device: torch.device | None = None) -> str:
-    dev = accelerator_device or torch.device("cpu")
-    if dev.type == "cuda":
-        return torch.cuda.get_device_name(dev)
-    import platform
-
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"cpu: {cpu} ({torch.get_num_threads()} threads)"

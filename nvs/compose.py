@@ -1,0 +1,42 @@
+"""The project's config directory and the one way a tool composes a config outside a Hydra run."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from omegaconf import DictConfig
+
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
+
+
+def compose(config_name: str, overrides: list[str] | tuple[str, ...] = (), resolve: bool = False) -> DictConfig:
+    """``conf/<config_name>.yaml`` with ``overrides`` as Hydra composes it (the hydra node excluded).
+
+    Works inside another Hydra app (a ``@hydra.main`` tool, a test): the outer global state is saved and restored.
+    A composition error is one ``UserError`` naming the overrides.
+    """
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from omegaconf import OmegaConf
+
+    from nvs.errors import UserError
+
+    overrides = [str(o) for o in overrides]
+    outer = GlobalHydra.instance().is_initialized()
+    if outer:
+        saved = GlobalHydra.instance().hydra
+        GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            cfg = hydra_compose(config_name=config_name, overrides=overrides)
+    except Exception as err:  # noqa: BLE001 - a composition error is a problem in the caller's overrides
+        raise UserError(f"conf/{config_name}.yaml with overrides {overrides} does not compose: "
+                        f"{str(err).splitlines()[0]}") from None
+    finally:
+        if outer:
+            GlobalHydra.instance().clear()
+            GlobalHydra.instance().initialize(saved)
+    if resolve:
+        OmegaConf.resolve(cfg)
+    return cfg
