@@ -80,12 +80,9 @@ class NVSModule(L.LightningModule):
             if hasattr(term, "update_critic"):
                 for key, value in term.update_critic(out, batch).items():
                     self.log(f"train/{name}/{key}", value, batch_size=bs)
-        total = 0.0
-        values = {}
-        for name, term in self.losses.items():
-            values[name] = value = term(out, batch)
+        total, values = self.loss(out, batch)
+        for name, value in values.items():
             self.log(f"train/loss/{name}", value.detach(), batch_size=bs)
-            total = total + term.weight * value
         if not self._constant_terms_warned:  # checked on the first step only
             self._warn_constant_terms(values)
         self.log("train/loss/total", total.detach(), prog_bar=True, batch_size=bs)
@@ -98,6 +95,12 @@ class NVSModule(L.LightningModule):
                 f"({', '.join(f'{n}' for n in self.losses)}); the last good checkpoint is kept. "
                 "Set nonfinite=skip to drop such steps instead.")
         return total
+
+    def loss(self, out, batch: Batch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """The weighted training loss and its raw terms: ``(sum_i w_i * term_i, {name: term_i})``."""
+        values = {name: term(out, batch) for name, term in self.losses.items()}
+        total = sum(self.losses[name].weight * value for name, value in values.items())
+        return total, values
 
     def _warn_constant_terms(self, values: dict[str, torch.Tensor]) -> None:
         self._constant_terms_warned = True
