@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
-from nvs.data.render import drive
+from nvs.data.render import depth_stats, drive, drive_plan, drive_rig, drive_sources
 from nvs.data.render.spm import SpmError, read_spm
 from nvs.data.render.stk import StkError, driveline, hpr_matrix, read_quads
 
@@ -52,7 +52,7 @@ def _camera(config: str) -> dict:
 
 @pytest.mark.parametrize("config, camera", [("drive", "kitti"), ("drive_wide", "wide")])
 def test_data_config_camera_is_the_renderers(config, camera):
-    cam, K = _camera(config), drive.camera_K(camera)
+    cam, K = _camera(config), drive_rig.camera_K(camera)
     assert cam["size"] == 256
     assert (cam["fx"], cam["fy"], cam["cx"], cam["cy"]) == (K[0, 0], K[1, 1], K[0, 2], K[1, 2])
 
@@ -70,24 +70,24 @@ def test_head_range_in_metres():
 
 
 def test_representable_fraction_by_hand():
-    counts = np.zeros(len(drive.DEPTH_BINS) + 1, dtype=np.int64)
+    counts = np.zeros(len(depth_stats.DEPTH_BINS) + 1, dtype=np.int64)
     counts[0] = 1000  # sky does not count
-    k3 = np.searchsorted(drive.DEPTH_BINS, 3.0) - 1  # a bin around 3 m: below a 5 m head minimum
-    k20 = np.searchsorted(drive.DEPTH_BINS, 20.0) - 1
+    k3 = np.searchsorted(depth_stats.DEPTH_BINS, 3.0) - 1  # a bin around 3 m: below a 5 m head minimum
+    k20 = np.searchsorted(depth_stats.DEPTH_BINS, 20.0) - 1
     counts[1 + k3], counts[1 + k20] = 1, 99
-    assert drive.representable_fraction(counts, 5.0, 5000.0) == pytest.approx(0.99)
-    assert drive.representable_fraction(counts, 1.0, 5000.0) == pytest.approx(1.0)
-    assert drive.representable_fraction(counts, 50.0, 5000.0) == 0.0
+    assert depth_stats.representable_fraction(counts, 5.0, 5000.0) == pytest.approx(0.99)
+    assert depth_stats.representable_fraction(counts, 1.0, 5000.0) == pytest.approx(1.0)
+    assert depth_stats.representable_fraction(counts, 50.0, 5000.0) == 0.0
     # A bin straddling the limit does not count (the answer errs low).
-    edge = drive.DEPTH_BINS[k20] * 1.001
-    assert drive.representable_fraction(counts, edge, 5000.0) == pytest.approx(0.0)
+    edge = depth_stats.DEPTH_BINS[k20] * 1.001
+    assert depth_stats.representable_fraction(counts, edge, 5000.0) == pytest.approx(0.0)
 
 
 def test_committed_render_depths_fit_the_head():
     """The full drive render's depths (docs/drive_depth_stats.json) lie inside conf/data/drive.yaml's head."""
     stats = json.loads(STATS.read_text())
     assert stats["camera"] == "kitti"
-    assert np.allclose(stats["bins_m"], drive.DEPTH_BINS)
+    assert np.allclose(stats["bins_m"], depth_stats.DEPTH_BINS)
     lo, hi = _head_range_m("drive")
     K = np.array(stats["K"])
     cam = _camera("drive")
@@ -95,11 +95,11 @@ def test_committed_render_depths_fit_the_head():
     total = np.sum([c for c in stats["counts"].values()], axis=0)
     assert stats["sequences"] >= 30 and stats["frames"] >= 200
     assert len(stats["counts"]) >= 2  # scenes from at least two games
-    share = drive.representable_fraction(total, lo, hi)
+    share = depth_stats.representable_fraction(total, lo, hi)
     print(f"representable share of valid depths: {share:.4%} (head {lo:.2f} m .. {hi:.0f} m)")
     assert share >= SHARE
     for source, counts in stats["counts"].items():
-        assert drive.representable_fraction(counts, lo, hi) >= SHARE, source
+        assert depth_stats.representable_fraction(counts, lo, hi) >= SHARE, source
 
 
 # --- .spm reader -----------------------------------------------------------------------------------------------
@@ -188,23 +188,23 @@ def test_quads_bad_reference_names_the_file(tmp_path):
 
 # --- planning ----------------------------------------------------------------------------------------------------
 
-def _fake_source(src: str, name: str, length: float) -> drive.SceneSource:
+def _fake_source(src: str, name: str, length: float) -> drive_sources.SceneSource:
     pts = np.stack([np.zeros(int(length) + 1), np.zeros(int(length) + 1), np.arange(int(length) + 1.0)], axis=1)
-    return drive.SceneSource(src, name, lambda: [(pts, np.full(len(pts), 8.0))], lambda: None, "pkg", "lic", "c")
+    return drive_sources.SceneSource(src, name, lambda: [(pts, np.full(len(pts), 8.0))], lambda: None, "pkg", "lic", "c")
 
 
 def test_plan_weights_windows_and_scene_splits():
     sources = {"a": [_fake_source("a", f"a{i}", 700) for i in range(5)],
                "b": [_fake_source("b", f"b{i}", 300) for i in range(5)]}
     failed: list[str] = []
-    plan = drive.plan_sequences(sources, 12, 200, seed=0, failed=failed, weights={"a": 2, "b": 1})
+    plan = drive_plan.plan_sequences(sources, 12, 200, seed=0, failed=failed, weights={"a": 2, "b": 1})
     assert [p.scene.source for p in plan[:6]] == ["a", "a", "b", "a", "a", "b"]
     # Windows of one scene are disjoint (210 m each, 20 m apart) and inside the centre line.
     for name in {p.scene.name for p in plan}:
         starts = sorted(p.start for p in plan if p.scene.name == name)
         assert all(b - a >= 210 for a, b in zip(starts, starts[1:]))
         assert all(s + 200 < 700 for s in starts)
-    split = drive.split_scenes(plan, seed=0)
+    split = drive_plan.split_scenes(plan, seed=0)
     scene_of = {p.seq: (p.scene.source, p.scene.name) for p in plan}
     sets = {k: {scene_of[s] for s in v} for k, v in split.items()}
     assert sets["test"] and sets["train"] and not (sets["test"] & sets["train"] or sets["val"] & sets["train"])
@@ -214,14 +214,14 @@ def test_plan_weights_windows_and_scene_splits():
 
 def test_plan_too_few_windows_is_one_clear_error():
     with pytest.raises(RuntimeError, match="only 1 windows of 200 m"):
-        drive.plan_sequences({"a": [_fake_source("a", "a0", 300)]}, 3, 200, seed=0, failed=[])
+        drive_plan.plan_sequences({"a": [_fake_source("a", "a0", 300)]}, 3, 200, seed=0, failed=[])
 
 
 @pytest.mark.parametrize("bad, message", [("stk,nope", "unknown drive source 'nope'"), ("stk:x", "integer"),
                                           ("stk,stk", "twice"), ("stk:0", ">= 1")])
 def test_sources_option_errors(bad, message):
     with pytest.raises(ValueError, match=message):
-        drive.parse_sources(bad)
+        drive_sources.parse_sources(bad)
 
 
 # --- a small render (CI: TORCS is in the setup's packages) --------------------------------------------------------
@@ -246,7 +246,7 @@ def test_small_render_depths_fit_the_head_and_warp(tmp_path):
     counts = np.asarray(stats["counts"]["torcs"])
     assert counts.sum() == depths.size and counts[0] == int((depths <= 0).sum())
     lo, hi = _head_range_m("drive")
-    share = drive.representable_fraction(counts, lo, hi)
+    share = depth_stats.representable_fraction(counts, lo, hi)
     exact = float(((depths > lo) & (depths < hi)).sum() / (depths > 0).sum())
     print(f"small render: {share:.4%} of valid depths inside {lo:.2f}..{hi:.0f} m (exact {exact:.4%})")
     assert share <= exact + 1e-9 and share >= SHARE
@@ -254,8 +254,8 @@ def test_small_render_depths_fit_the_head_and_warp(tmp_path):
     wide = drive.render_drive(tmp_path / "wide", size=32, supersample=1, sequences=3, frames=20,
                               sources="torcs", camera="wide", progress=False)
     wstats = json.loads((tmp_path / "wide" / "depth_stats.json").read_text())["counts"]["torcs"]
-    assert drive.representable_fraction(wstats, lo, hi) < SHARE
-    assert drive.representable_fraction(wstats, *_head_range_m("drive_wide")) >= SHARE
+    assert depth_stats.representable_fraction(wstats, lo, hi) < SHARE
+    assert depth_stats.representable_fraction(wstats, *_head_range_m("drive_wide")) >= SHARE
     assert wide["K"][0][0] < meta["K"][0][0]
     scenes = {s["seq"]: s["scene"] for s in meta["sequences"]}
     where = {scenes[int(q)]: k for k, v in meta["split"].items() for q in v}
@@ -265,12 +265,12 @@ def test_small_render_depths_fit_the_head_and_warp(tmp_path):
 @pytest.mark.render
 def test_stk_track_loads_with_placed_objects():
     """One SuperTuxKart track: scene.xml's placements add surfaces beyond the track mesh; textures resolve."""
-    from nvs.data.render import stk
+    from nvs.data.render import stk, stk_scene
 
     d = stk.STK_DIR / "tracks" / "hacienda"
     if not d.is_dir():
         pytest.skip("supertuxkart-data not extracted: run scripts/install_drive_assets.sh")
-    parts, missing = stk.load_scene(d)
+    parts, missing = stk_scene.load_scene(d)
     track_only = sum(len(b.faces) for b in read_spm(d / "hacienda_track.spm"))
     assert sum(len(p.faces) for p in parts) > 1.2 * track_only
     assert sum(p.image is not None for p in parts) >= 0.9 * len(parts)
