@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from nvs.data.render.md2 import read_md2
-from nvs.data.render.orient import facing, length_axis
+from nvs.data.render.orient import face_front, facing, length_axis
 from nvs.data.render.scene import Part
 
 
@@ -89,6 +89,15 @@ def test_facing_turns_the_named_front_to_plus_z():
     np.testing.assert_allclose(facing(parts, "-z")[1].positions.mean(0), [-2.5, 0.3, 0.0], atol=1e-12)
     with pytest.raises(ValueError, match="front must be one of"):
         facing(parts, "up")
+
+
+def test_face_front_takes_a_direction_or_a_default_per_length_axis():
+    parts = [_box(4.0, 1.0, 2.0), _box(0.2, 0.2, 0.2, shift=(2.5, 0.3, 0.0))]  # long along x, marker at +x
+    by_axis = {"x": "+x", "z": "-z"}
+    np.testing.assert_allclose(face_front(parts, "m", by_axis)[1].positions.mean(0), [0.0, 0.3, 2.5], atol=1e-12)
+    np.testing.assert_allclose(face_front(parts, "m", "-x")[1].positions.mean(0), [0.0, 0.3, -2.5], atol=1e-12)
+    with pytest.raises(ValueError, match=r"^models/car\.ac: front 'up' is not one of"):
+        face_front(parts, "models/car.ac", "up")
 
 
 def test_geometry_signature_ignores_texture_not_shape():

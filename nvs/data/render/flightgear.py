@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from nvs.data.render.orient import FRONT_AXES, facing, length_axis
+from nvs.data.render.orient import face_front
 from nvs.data.render.scene import Part
 from nvs.data.render.sources import ASSET_DIR, ModelSource, ac3d_parts, slug
 
@@ -48,10 +48,7 @@ FRONT = {"it_policecar1": "+z", "vwgolfsilver": "+z"}
 def _loader(path: Path, name: str):
     def load() -> list[Part]:
         parts = ac3d_parts(path, [path.parent, path.parent.parent / "Textures", MODELS / "Textures"])
-        front = FRONT.get(name, FRONT_DEFAULT[length_axis(parts)])
-        if front not in FRONT_AXES:
-            raise ValueError(f"{path}: front {front!r} is not one of {FRONT_AXES}")
-        return facing(parts, front)
+        return face_front(parts, str(path), FRONT.get(name, FRONT_DEFAULT))
 
     return load
 

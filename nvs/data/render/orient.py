@@ -29,3 +29,13 @@ def facing(parts: list[Part], front: str) -> list[Part]:
         raise ValueError(f"front must be one of {FRONT_AXES}, got {front!r}")
     R = _TO_FRONT[front]
     return [Part(p.positions @ R.T, p.faces, p.uvs, p.image, p.color) for p in parts]
+
+
+def face_front(parts: list[Part], where: str, front: str | dict[str, str]) -> list[Part]:
+    """Turn y-up parts so that their front faces +z. `front` is a direction ('+x', '-x', '+z', '-z') or one per
+    length axis ({'x': ..., 'z': ...}, a source's default, chosen by length_axis); `where` names the model."""
+    if isinstance(front, dict):
+        front = front[length_axis(parts)]
+    if front not in FRONT_AXES:
+        raise ValueError(f"{where}: front {front!r} is not one of {FRONT_AXES}")
+    return facing(parts, front)

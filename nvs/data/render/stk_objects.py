@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nvs.data.render.orient import facing, length_axis
+from nvs.data.render.orient import face_front
 from nvs.data.render.scene import Part
 from nvs.data.render.sources import ModelSource, dep5_licence, read_texture, slug
 from nvs.data.render.spm import read_spm
@@ -60,9 +60,7 @@ def spm_parts(path: Path) -> list[Part]:
 
 def _loader(key: str, path: Path, car: bool):
     def load() -> list[Part]:
-        parts = spm_parts(path)
-        default = FRONT_DEFAULT[length_axis(parts)] if car else "+z"
-        return facing(parts, FRONT.get(key, default))
+        return face_front(spm_parts(path), str(path), FRONT.get(key, FRONT_DEFAULT if car else "+z"))
 
     return load
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from nvs.data.render.md2 import read_md2
-from nvs.data.render.orient import FRONT_AXES, facing, length_axis
+from nvs.data.render.orient import face_front
 from nvs.data.render.scene import Part
 from nvs.data.render.sources import ASSET_DIR, ModelSource, dep5_licence, read_texture, slug
 
@@ -79,11 +79,7 @@ def md2_part(path: Path) -> Part:
 def _loader(body: str, wheels: list[str]):
     def load() -> list[Part]:
         parts = [md2_part(OBJECTS / f"{m}.md2") for m in [body, *wheels]]
-        default = FRONT_DEFAULT[length_axis(parts)] if body.startswith("cars/") else "+z"
-        front = FRONT.get(body, default)
-        if front not in FRONT_AXES:
-            raise ValueError(f"{body}: front {front!r} is not one of {FRONT_AXES}")
-        return facing(parts, front)
+        return face_front(parts, body, FRONT.get(body, FRONT_DEFAULT if body.startswith("cars/") else "+z"))
 
     return load
 
