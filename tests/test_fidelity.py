@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 import reference_code as rc
 from nvs.convert import convert, key_map
 from nvs.errors import UserError
-from nvs.evaluate import load_checkpoint, load_weights
+from nvs.checkpoints import load_checkpoint, load_weights
 from nvs.geometry import invert_pose
 
 pytestmark = pytest.mark.skipif(not rc.available(), reason=f"the authors' code is not at {rc.REFERENCE}")

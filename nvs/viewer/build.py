@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig
 
-from nvs.build import build_data, build_module
+from nvs.build import build_data
+from nvs.checkpoints import restore_module, restore_run_config
 from nvs.errors import UserError
-from nvs.evaluate import load_weights, run_config
 from nvs.viewer.controls import build_controls
 from nvs.viewer.session import PRECISIONS, Source, ViewSession
 
@@ -29,13 +29,11 @@ def build_session(cfg: DictConfig, extra_ids: tuple[str, ...] = ()) -> tuple[Vie
         raise UserError(f"precision={cfg.precision!r}: expected one of {', '.join(PRECISIONS)}")
     if not isinstance(cfg.gallery, int) or cfg.gallery < 1:
         raise UserError(f"gallery={cfg.gallery!r}: expected a positive number of images")
-    run, ckpt = run_config(cfg)
+    run, ckpt = restore_run_config(cfg)
     run.data.loader.with_depth = False  # the viewer shows predicted depth only
     run.loss = {}  # no loss networks (VGG) to build
     datamodule = build_data(run)
-    run.model.image_size = run.data.size
-    module = build_module(run)
-    load_weights(module, ckpt, cfg.ckpt_path)
+    module = restore_module(run, ckpt)
     test = datamodule.dataset("test")
     controls = build_controls(run.data.format, datamodule)
     ids = list(dict.fromkeys(src for pair in test.pairs for src in pair))
