@@ -1,0 +1,8 @@
+"""python -m nvs.bench: run time, memory and FLOPs of the model options at the studies' sizes, beside the authors' code.
+
+``measure`` (interleaved timing, FLOPs, peak memory), ``contenders`` (an nvs model option in an execution mode, or
+the authors' code), ``reference`` (their code imported from the path given), ``run`` (one image size),
+``report`` (Markdown), ``profile`` (torch.profiler of a training step); ``__main__`` is the CLI.
+"""
+
+from nvs.bench.report import accuracy_section  # noqa: F401 - the precision study's section, read by tests

@@ -1,0 +1,110 @@
+"""python -m nvs.bench [sizes=[64,128,256]] [only=[full]] [modes=[fp32,bf16_cl]] [reference=<authors' checkout>]
+                      [profile=[64,256]]
+
+Writes results/bench/<device>.{json,md} (every size in one report), or with ``profile=[...]`` the training-step
+profiles results/bench/profile_<device>_<size>.md instead.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import hydra
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from nvs.atomic import write_json, write_text
+from nvs.bench import measure
+from nvs.bench.contenders import MODES
+from nvs.bench.reference import check_path
+from nvs.compose import CONF_DIR
+from nvs.errors import UserError, exits_cleanly
+from nvs.provenance import command_line, device_name, header
+
+
+def _slug(name: str) -> str:
+    return "".join(c if c.isalnum() else "-" for c in name.lower()).strip("-")[:60]
+
+
+def _positive(value, key: str) -> int:
+    if not isinstance(value, int) or isinstance(value, bool) or value <= 0:
+        raise UserError(f"bench.yaml '{key}': expected a positive integer, got {value!r}")
+    return value
+
+
+def plan(cfg: DictConfig) -> tuple[list[tuple[int, int]], dict[str, list[str]]]:
+    """-> ([(size, train batch)], {model option: overrides}), every key checked."""
+    sizes = [cfg.image_size] if cfg.get("image_size") is not None else list(cfg.sizes)
+    batches = cfg.train_batch
+    if OmegaConf.is_list(batches):
+        if cfg.get("image_size") is not None or len(batches) != len(sizes):
+            raise UserError(f"bench.yaml 'train_batch': {len(batches)} batches for sizes {sizes}: give one per size "
+                            "or one number for all")
+        batches = list(batches)
+    else:
+        batches = [batches] * len(sizes)
+    pairs = [(_positive(s, "sizes"), _positive(b, "train_batch")) for s, b in zip(sizes, batches)]
+    for key in ("eval_batch", "repeats"):
+        _positive(cfg[key], key)
+    if cfg.throughput_batch is not None:
+        _positive(cfg.throughput_batch, "throughput_batch")
+    unknown_modes = [m for m in cfg.modes if m not in MODES]
+    if unknown_modes:
+        raise UserError(f"bench.yaml 'modes': unknown {unknown_modes}; choose from {list(MODES)}")
+    chosen = list(cfg.only) if cfg.only else list(cfg.models)
+    unknown = [m for m in chosen if m not in cfg.models]
+    if unknown:
+        raise UserError(f"bench.yaml 'only': {unknown} not in its models {list(cfg.models)}")
+    return pairs, {m: list(cfg.models[m]) for m in chosen}
+
+
+def _profiles(cfg: DictConfig, device: torch.device) -> None:
+    from nvs.bench.profile import markdown, profile_step
+
+    pairs, _ = plan(cfg)
+    batch_at = dict(pairs)
+    model = cfg.profile_model
+    if model not in cfg.models:
+        raise UserError(f"bench.yaml 'profile_model': {model!r} not in its models {list(cfg.models)}")
+    for size in cfg.profile:
+        size = _positive(size, "profile")
+        batch = batch_at.get(size, pairs[0][1])
+        print(f"profiling {model} at {size}², batch {batch}, {cfg.profile_mode}", flush=True)
+        prof = profile_step(list(cfg.models[model]), cfg.profile_mode, size, batch, device, cfg.paths.root_dir,
+                            warmup=cfg.warmup + 1, steps=cfg.repeats)
+        head = header(command_line("nvs.bench"), device, threads=torch.get_num_threads())
+        path = f"{cfg.out_dir}/profile_{_slug(device_name(device).split('(')[0])}_{size}.md"
+        write_text(path, markdown(head, prof))
+        print(f"wrote {path}")
+
+
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="bench")
+@exits_cleanly
+def main(cfg: DictConfig) -> None:
+    from nvs.bench.report import markdown
+    from nvs.bench.run import bench_size
+
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if cfg.profile:
+        return _profiles(cfg, device)
+    pairs, models = plan(cfg)
+    reference = str(check_path(cfg.reference)) if cfg.reference else None
+    head = header(command_line("nvs.bench"), device, iso=True, threads=torch.get_num_threads(),
+                  python=sys.version.split()[0], reference=reference or "not timed (reference=<path> times it)",
+                  repeats=cfg.repeats, warmup=cfg.warmup)
+    report = {"header": head, "sizes": []}
+    if cfg.measure_peak:
+        report["peak"] = measure.machine_peak(device)
+        print(f"peak: {report['peak']}", flush=True)
+    name = _slug(device_name(device).split("(")[0])
+    for size, batch in pairs:
+        report["sizes"].append(bench_size(models, list(cfg.modes), size, batch, cfg.eval_batch, cfg.throughput_batch,
+                                          cfg.warmup, cfg.repeats, device, cfg.paths.root_dir, reference,
+                                          log=lambda msg: print(msg, flush=True)))
+        write_json(f"{cfg.out_dir}/{name}.json", report)  # after every size: a long run keeps what it measured
+        write_text(f"{cfg.out_dir}/{name}.md", markdown(report))
+    print(f"wrote {cfg.out_dir}/{name}.json and .md")
+
+
+if __name__ == "__main__":
+    main()

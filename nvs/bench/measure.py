@@ -1,0 +1,134 @@
+"""Timing, FLOPs and peak memory of callables, interleaved so that machine noise falls on every contender alike.
+
+Times are medians of repeats after warm-up, synchronised on GPU. FLOPs are torch's counter
+(``torch.utils.flop_counter.FlopCounterMode``: matmuls and convolutions, forward and backward). Peak memory on GPU
+is ``max_memory_allocated``; on CPU it is the rise of the process's peak RSS over one call, measured after
+``malloc_trim`` has handed freed heap pages back, plus the state that persists between calls (parameters, buffers,
+optimiser state), so two contenders in one process are measured alike.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import gc
+import statistics
+import time
+from collections.abc import Callable, Iterable
+from pathlib import Path
+
+import torch
+from torch.utils.flop_counter import FlopCounterMode
+
+
+def sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _status_kb(key: str) -> float | None:
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith(key + ":"):
+                return float(line.split()[1])
+    except OSError:
+        pass
+    return None
+
+
+def _trim_heap() -> None:
+    gc.collect()
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+
+
+def state_bytes(modules: Iterable[torch.nn.Module], optimizers: Iterable[torch.optim.Optimizer] = ()) -> int:
+    """Bytes of what lives between steps: parameters, buffers and optimiser state (each tensor once)."""
+    seen, total = set(), 0
+    tensors = [t for m in modules for t in (*m.parameters(), *m.buffers())]
+    tensors += [v for opt in optimizers for s in opt.state.values() for v in s.values() if torch.is_tensor(v)]
+    for t in tensors:
+        if t.data_ptr() not in seen:
+            seen.add(t.data_ptr())
+            total += t.numel() * t.element_size()
+    return total
+
+
+def peak_mb(fn: Callable[[], object], device: torch.device, persistent_bytes: int = 0) -> float | None:
+    """Peak memory (MB) of one call of ``fn``: what it allocates at most, plus ``persistent_bytes``."""
+    if device.type == "cuda":
+        sync(device)
+        torch.cuda.reset_peak_memory_stats(device)
+        fn()
+        sync(device)
+        return torch.cuda.max_memory_allocated(device) / 2**20
+    _trim_heap()
+    before = _status_kb("VmRSS")
+    try:
+        Path("/proc/self/clear_refs").write_text("5")  # resets VmHWM (peak RSS) to the current RSS
+    except OSError:
+        return None
+    fn()
+    peak = _status_kb("VmHWM")
+    if before is None or peak is None:
+        return None
+    return (peak - before) / 1024 + persistent_bytes / 2**20
+
+
+def flops(fn: Callable[[], object]) -> int:
+    with FlopCounterMode(display=False) as counter:
+        fn()
+    return int(counter.get_total_flops())
+
+
+def interleaved(fns: dict[str, Callable[[], object]], device: torch.device, warmup: int, repeats: int
+                ) -> dict[str, dict]:
+    """Times every callable ``repeats`` times, one call of each in turn (after ``warmup`` calls of each).
+
+    -> {name: {median_ms, min_ms, max_ms}}. A callable that raises is reported as {"error": ...} and dropped.
+    """
+    times: dict[str, list[float]] = {name: [] for name in fns}
+    errors: dict[str, str] = {}
+    for _ in range(warmup):
+        for name, fn in fns.items():
+            if name not in errors:
+                try:
+                    fn()
+                except Exception as err:  # noqa: BLE001 - a failing contender is reported, the rest go on
+                    errors[name] = f"{err.__class__.__name__}: {str(err).splitlines()[0][:160] if str(err) else ''}"
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            if name in errors:
+                continue
+            sync(device)
+            t0 = time.perf_counter()
+            try:
+                fn()
+            except Exception as err:  # noqa: BLE001
+                errors[name] = f"{err.__class__.__name__}: {str(err).splitlines()[0][:160] if str(err) else ''}"
+                continue
+            sync(device)
+            times[name].append(1000 * (time.perf_counter() - t0))
+    out = {}
+    for name in fns:
+        if name in errors:
+            out[name] = {"error": errors[name]}
+        else:
+            t = times[name]
+            out[name] = {"median_ms": statistics.median(t), "min_ms": min(t), "max_ms": max(t), "n": len(t)}
+    return out
+
+
+def machine_peak(device: torch.device) -> dict:
+    """Achievable bf16 GFLOP/s: a large matmul and a 3x3 64-channel channels_last convolution."""
+    a = torch.randn(2048, 2048, device=device, dtype=torch.bfloat16)
+    conv = torch.nn.Conv2d(64, 64, 3, padding=1).to(device, memory_format=torch.channels_last)
+    x = torch.randn(8, 64, 128, 128, device=device).contiguous(memory_format=torch.channels_last)
+
+    def run_conv():
+        with torch.no_grad(), torch.autocast(device.type, dtype=torch.bfloat16):
+            conv(x)
+
+    t = interleaved({"mm": lambda: a @ a, "conv": run_conv}, device, 2, 5)
+    return {"bf16_matmul_gflops": 2 * 2048**3 / t["mm"]["median_ms"] / 1e6,
+            "bf16_conv3x3_gflops": 2 * 8 * 64 * 64 * 9 * 128 * 128 / t["conv"]["median_ms"] / 1e6}
