@@ -340,7 +340,9 @@ def test_a_changed_config_is_stale_and_moved_aside_before_relaunch(fabricated, t
     jobs = {(j.row.name, j.seed): j for j in sweep.plan(changed, root)}
     assert jobs["full", 0].status == "stale" and jobs["copy", 0].status == "done"  # reference rows ignore optim
     assert jobs["full", 0] in sweep.to_launch(list(jobs.values()))
-    record = next(r for r in sweep.collect([jobs["full", 0]]))
+    from nvs.sweep.collect import collect
+
+    record = next(r for r in collect([jobs["full", 0]]))
     assert record["status"] == "stale" and "optim.lr" in record["error"] and record["l1"] is None
     sweep.prepare_job_dir(jobs["full", 0], root)
     assert not (jobs["full", 0].dir / "metrics.json").exists()  # the old result can no longer be mistaken for new
@@ -380,7 +382,9 @@ def test_last_error_line():
 
 
 def test_parallel_launch_never_oversubscribes_the_cores(monkeypatch):
-    monkeypatch.setattr(sweep, "_cores", lambda: 8)
+    from nvs.sweep import launch as launching
+
+    monkeypatch.setattr(launching, "_cores", lambda: 8)
     launch = sweep.Launch.local(jobs=4)
     assert launch.threads == 2 and "hydra/launcher=joblib" in launch.hydra_overrides
     assert "hydra.launcher.n_jobs=4" in launch.hydra_overrides
@@ -445,7 +449,7 @@ def test_pareto_reads_the_paper_studies_by_default(tmp_path):
 
 
 def test_unproject_inverts_the_projection():
-    from nvs.figures import unproject
+    from nvs.paper_figures import unproject
 
     K = torch.tensor([[100.0, 0, 31.5], [0, 120.0, 31.5], [0, 0, 1]], dtype=torch.float64)
     depth = torch.rand(64, 64, dtype=torch.float64) + 1
@@ -556,7 +560,8 @@ def test_sigterm_to_the_sweep_stops_its_running_job(tmp_path):
         "    sweep._run_streaming(child, dict(__import__('os').environ))\n"
         "except KeyboardInterrupt:\n"
         "    sys.exit(130)\n")
-    proc = subprocess.Popen([sys.executable, str(script)], cwd=REPO)
+    # PYTHONPATH: the script lives outside the checkout, so the checkout is not on its path otherwise
+    proc = subprocess.Popen([sys.executable, str(script)], cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
     for _ in range(200):
         if pid_file.exists() and pid_file.read_text():
             break

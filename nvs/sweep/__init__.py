@@ -1,0 +1,42 @@
+"""The sweep runner: ``python -m nvs.sweep sweeps/<study>.yaml`` runs a study's jobs, then tabulates them.
+
+One module per idea: ``study`` (the typed study-file schema), ``jobs`` (a job, its status, identity and planning),
+``launch`` (Hydra multiruns in a subprocess), ``recorder`` (the Hydra callback inside every job), ``collect`` (one
+record per job, the CSV), ``tables`` (the Markdown tables, orderings against the paper, cost tables) and
+``__main__`` (the command line). Names are also reachable as ``nvs.sweep.<name>``, loaded on first use, so that
+importing ``nvs.sweep.recorder`` inside a training job loads nothing else.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+_WHERE = {
+    "study": ("REFERENCE_MODELS", "TABLES", "Row", "Study", "StudyFile", "load_study"),
+    "jobs": ("JOB_RECORD", "NEUTRAL_KEYS", "Job", "Status", "row_overrides", "row_seeds", "compose_job",
+             "config_fingerprint", "config_digest", "config_changes", "job_key", "job_status", "plan", "to_launch",
+             "prepare_job_dir"),
+    "recorder": ("FAILED", "STDERR", "JobRecorder"),
+    "launch": ("Launch", "multirun_command", "launch_row", "last_error_line", "_cores", "_run_streaming",
+               "_interrupt"),
+    # (the function collect is nvs.sweep.collect.collect: the attribute nvs.sweep.collect is its module)
+    "collect": ("CSV_COLUMNS", "COSTS", "SKIP_LEVELS", "SKIP_FRACTIONS", "render_csv", "mean_std", "summarize"),
+    "tables": ("ORDER_TIE", "PICK_COST", "PICK_L1_TOLERANCE", "orderings", "pick_cheapest", "render_markdown",
+               "provenance", "write_results"),
+    "__main__": ("run", "main"),
+}
+_MODULE_OF = {name: module for module, names in _WHERE.items() for name in names}
+_SHARED = {"UserError": "nvs.errors", "CONF_DIR": "nvs.compose", "METRICS": "nvs.metric_spec",
+           "IMAGE_METRICS": "nvs.metric_spec", "DEPTH_METRICS": "nvs.metric_spec"}
+
+
+def __getattr__(name: str):
+    if name in _MODULE_OF:
+        return getattr(importlib.import_module(f"{__name__}.{_MODULE_OF[name]}"), name)
+    if name in _SHARED:
+        return getattr(importlib.import_module(_SHARED[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_MODULE_OF, *_SHARED])

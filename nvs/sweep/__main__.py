@@ -1,0 +1,135 @@
+"""python -m nvs.sweep sweeps/<study>.yaml: run a study's jobs through Hydra multirun, then tabulate them.
+
+A study file (schema in ``sweeps/README.md``) names rows, seeds, a scale (image size, steps) and the paper's numbers.
+Each (row, seed) is one job with a fixed run directory ``<runs>/<size>px_<steps>steps/<run>_s<seed>``, launched by
+``python -m nvs.train -m`` (or ``python -m nvs.evaluate -m`` for reference rows) with
+``hydra.sweep.dir=<runs>/<scale>`` and ``hydra.sweep.subdir=<run>_s${seed}`` -- one multirun per row over the seeds
+it still needs, through whatever Hydra launcher is selected (basic, joblib, submitit).
+
+Resumability: before launching, the runner writes ``sweep_job.json`` (the job's key, made of the overrides that
+define it, and its composed config) into the job directory. A job whose directory holds ``metrics.json`` and a
+record that still stands for it (``nvs.sweep.jobs`` says when) is done and never relaunched; an interrupted job
+resumes from ``checkpoints/last.ckpt`` via train.yaml's ``ckpt_path=auto``; a stale directory (the study or a value
+in ``conf/`` changed) is moved to ``<runs>/<scale>/.stale/`` first, so a stale checkpoint is never resumed. A failed job leaves ``failed.txt`` (its last error line) and is shown as
+failed in the tables.
+
+Collection writes ``results/<study>.csv`` (one line per job) and ``results/<study>.md`` (mean ± std over seeds
+per row, the paper's numbers beside ours; or, with ``table: cost``, cost against error with the cheapest row within
+1% of the best L1 marked), both atomically.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import shlex
+import signal
+import sys
+from pathlib import Path
+
+from nvs.errors import UserError
+from nvs.runs import Run
+from nvs.sweep.jobs import Job, plan, prepare_job_dir, to_launch
+from nvs.sweep.launch import Launch, _cores, _interrupt, launch_row, multirun_command
+from nvs.sweep.study import load_study
+from nvs.sweep.tables import write_results
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m nvs.sweep", description=__doc__.splitlines()[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter,
+                                epilog="Study schema, launchers (joblib, SLURM) and examples: sweeps/README.md")
+    p.add_argument("study", help="a study file, e.g. sweeps/ablation.yaml")
+    p.add_argument("overrides", nargs="*", help="extra Hydra overrides for every job, e.g. "
+                   "hydra/launcher=submitit_slurm hydra.launcher.partition=gpu trainer.devices=2")
+    p.add_argument("--seeds", type=int, help="use seeds 0..N-1 instead of the study's")
+    p.add_argument("--size", type=int, help="image size (data.size) instead of the study's; e.g. 256")
+    p.add_argument("--steps", type=int, help="training steps (trainer.max_steps) instead of the study's")
+    p.add_argument("--jobs", type=int, default=1, help="parallel local jobs (hydra/launcher=joblib); default 1")
+    p.add_argument("--threads", type=int, help="torch threads per job (default: cores // jobs)")
+    p.add_argument("--runs", default="runs/sweeps", help="sweep root; jobs go to <runs>/<size>px_<steps>steps/")
+    p.add_argument("--results", default="results", help="where <study>.csv and <study>.md are written")
+    p.add_argument("--collect-only", metavar="DIR", help="tabulate the jobs under DIR (a <runs>/<scale> directory) "
+                   "without launching anything")
+    p.add_argument("--dry-run", action="store_true", help="print the plan and the commands; launch and write nothing")
+    p.add_argument("--skip-failed", action="store_true", help="do not retry jobs that failed before")
+    p.add_argument("--force", action="store_true", help="re-run every job (old directories go to <root>/.stale)")
+    p.add_argument("--figures", action="store_true", help="also draw the study's figures (nvs.figures) into "
+                   "--results from the finished jobs")
+    return p
+
+
+def _print_plan(jobs: list[Job], launching: list[Job]) -> None:
+    counts = collections.Counter(j.status for j in jobs)
+    print(f"[sweep] {len(jobs)} jobs: " + ", ".join(f"{n} {s}" for s, n in sorted(counts.items()))
+          + f"; launching {len(launching)}", file=sys.stderr)
+    for j in jobs:
+        mark = "->" if j in launching else "  "
+        print(f"[sweep] {mark} {j.row.name:<24} s{j.seed:<3} {j.status:<10} {j.dir}"
+              + (f"  ({j.error})" if j.error else ""), file=sys.stderr)
+
+
+def run(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else argv
+    command = "python -m nvs.sweep " + shlex.join(argv)
+    seeds = list(range(args.seeds)) if args.seeds is not None else None
+    study = load_study(args.study, seeds=seeds, size=args.size, steps=args.steps)
+    extra = tuple(args.overrides)
+    root = Path(args.collect_only) if args.collect_only else Path(args.runs) / study.scale
+    if args.collect_only and not root.is_dir():
+        raise UserError(f"--collect-only {root}: no such directory")
+    if not args.dry_run:  # before any job runs: the tables must have somewhere to go
+        from nvs.run_files import check_writable  # pandas: only when something is written
+
+        check_writable(args.results)
+    jobs = plan(study, root, extra)
+    launching = [] if args.collect_only else to_launch(jobs, retry_failed=not args.skip_failed, force=args.force)
+    _print_plan(jobs, launching)
+    if args.dry_run:
+        launch = Launch.local(args.jobs, args.threads, extra)
+        for row in study.rows:
+            seeds_left = [j.seed for j in launching if j.row is row]
+            if seeds_left:
+                print(shlex.join(multirun_command(study, row, seeds_left, root, launch, extra)))
+        return 0
+    if launching:
+        launch = Launch.local(args.jobs, args.threads, extra)
+        print(f"[sweep] {launch.jobs} job(s) at a time x {launch.threads} thread(s), {_cores()} cores",
+              file=sys.stderr)
+        for row in study.rows:
+            row_jobs = [j for j in launching if j.row is row]
+            if not row_jobs:
+                continue
+            for j in row_jobs:
+                prepare_job_dir(j, root, force=args.force)
+            launch_row(study, row_jobs, root, launch, extra)
+        jobs = plan(study, root, extra)
+    csv_path, md_path = write_results(study, jobs, args.results, command)
+    counts = collections.Counter(j.status for j in jobs)
+    print(f"[sweep] wrote {csv_path} and {md_path} ("
+          + ", ".join(f"{n} {s}" for s, n in sorted(counts.items())) + ")", file=sys.stderr)
+    if args.figures:
+        from nvs.paper_figures import make_figures
+
+        runs = [Run(j.dir, j.row.label, j.data or "", bool(j.row.reference)) for j in jobs if j.status == "done"]
+        for path in make_figures(runs, Path(args.results), study.results_stem) if runs else []:
+            print(f"[sweep] wrote {path}", file=sys.stderr)
+    return 0 if counts.get("done", 0) == len(jobs) else 1
+
+
+def main(argv: list[str] | None = None) -> None:
+    # `kill <sweep pid>` (SIGTERM) stops the running job too, as Ctrl-C does: no orphan keeps writing its run dir.
+    signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        sys.exit(run(argv))
+    except UserError as err:
+        print(f"error: {err}", file=sys.stderr)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        print("[sweep] interrupted; run the same command again to resume", file=sys.stderr)
+        sys.exit(130)
+
+
+if __name__ == "__main__":
+    main()
