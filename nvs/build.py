@@ -54,12 +54,27 @@ def build_module(cfg: DictConfig) -> NVSModule:
     net = _instantiate(OmegaConf.create({k: v for k, v in model.items() if k != "name"}), "model", _convert_="all")
     losses = {name: _instantiate(OmegaConf.create(OmegaConf.to_container(node, resolve=True)), f"loss.{name}")
               for name, node in (cfg.get("loss") or {}).items()}
+    check_needs(str(cfg.model.get("name", "nvs")), net, losses)
     optimizer = _instantiate(OmegaConf.create(OmegaConf.to_container(cfg.optim, resolve=True)), "optim")
     scheduler = _instantiate(cfg.scheduler, "scheduler") if cfg.get("scheduler") else None
     module = NVSModule(net, losses, optimizer, nonfinite=cfg.nonfinite, channels_last=bool(cfg.channels_last),
                        model_name=str(cfg.model.get("name", "nvs")), scheduler=scheduler)
     module.run_config = OmegaConf.to_container(cfg, resolve=True)
     return module
+
+
+def check_needs(model: str, net: torch.nn.Module, losses: dict[str, torch.nn.Module]) -> None:
+    """One clear error when the enabled losses need extras (``term.needs``) that the network does not list in its
+    ``provides`` (a network without that list, such as ``NVSNet``, computes every extra)."""
+    provides = getattr(net, "provides", None)
+    if provides is None:
+        return
+    needs = frozenset().union(*(getattr(term, "needs", frozenset()) for term in losses.values()))
+    missing = sorted(needs - frozenset(provides))
+    if missing:
+        have = ", ".join(sorted(provides)) or "none"
+        raise UserError(f"model '{model}' cannot provide {', '.join(repr(m) for m in missing)} that an enabled loss "
+                        f"reads; drop that term from loss=[...] (extras this model provides: {have})")
 
 
 def parameter_count(module: torch.nn.Module) -> int:

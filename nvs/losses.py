@@ -1,6 +1,6 @@
 """Loss terms, one class each: ``term(outputs, batch) -> scalar`` (unweighted); the module applies ``weight``.
 
-Each class declares ``needs``: the network extras (see ``nvs.models.net.Extras``) it reads, so a forward computes
+Each class declares ``needs``: the network extras (see ``nvs.types.Extras``) it reads, so a forward computes
 only what the enabled losses use. Image-space terms are computed on the [-1,1] range, as the paper's code does.
 """
 
@@ -10,10 +10,11 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from nvs.choices import check_choice
 from nvs.errors import UserError
-from nvs.models.blocks import UPSAMPLES, check_choice, upsample_side
-from nvs.models.net import Extras, to_model_range
-from nvs.types import Batch, Outputs
+from nvs.perceptual import VGG16Features
+from nvs.scales import UPSAMPLES, upsample_side
+from nvs.types import Batch, Extras, Outputs, to_model_range
 
 
 def up(x: torch.Tensor) -> torch.Tensor:
@@ -72,8 +73,6 @@ class VGGLoss(LossTerm):
     def __init__(self, weight: float = 1.0, layers=("relu1_2", "relu2_2", "relu3_3", "relu4_3"),
                  image_range: str = "model", size: int | None = 224):
         super().__init__(weight)
-        from nvs.models.vgg import VGG16Features
-
         self.image_range = check_choice(image_range, IMAGE_RANGES, "vgg_range")
         if size is not None and (not isinstance(size, int) or size < 32):
             raise ValueError(f"vgg_size={size!r}: an image size of at least 32, or null for the native size")

@@ -5,9 +5,7 @@ from __future__ import annotations
 import torch
 
 from nvs.losses import LossTerm, up
-from nvs.models.baselines import RGB_BRANCHES
-from nvs.models.net import to_model_range
-from nvs.types import Batch, Outputs
+from nvs.types import RGB_BRANCHES, Batch, Outputs, to_model_range
 
 
 class BranchReconLoss(LossTerm):

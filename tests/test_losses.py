@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from nvs.losses import DepthConsistencyLoss, EdgeSmoothLoss, ReconLoss, VGGLoss, WarpLoss
-from nvs.models.net import Extras
+from nvs.types import Extras
 from tests.conftest import fixture_batch
 
 

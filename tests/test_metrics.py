@@ -12,7 +12,7 @@ from skimage.metrics import peak_signal_noise_ratio as sk_psnr
 from skimage.metrics import structural_similarity as sk_ssim
 
 from nvs import metrics as M
-from nvs.models.vgg import LPIPS
+from nvs.perceptual import LPIPS
 
 
 def image_pair(shape=(2, 3, 40, 36), noise: float = 0.1, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -189,6 +189,32 @@ def test_compute_all_images_only_and_with_depth():
     out = M.compute_all(t(pred), t(tgt), depth_pred=d_pred, depth_gt=d_gt)
     assert set(out) == set(M.IMAGE_METRICS) | set(M.DEPTH_METRICS)
     assert all(v.shape == (2,) and v.dtype == torch.float32 for v in out.values())
+
+
+def test_function_tables_hold_exactly_the_metric_spec_names_in_its_order():
+    from nvs import metric_spec
+
+    assert tuple(M.IMAGE_METRICS) == metric_spec.IMAGE_METRICS
+    assert tuple(M.DEPTH_METRICS) == metric_spec.DEPTH_METRICS
+    d_pred, d_gt, _ = depth_case()
+    pred, tgt = image_pair(shape=(1, 3, 32, 32))
+    out = M.compute_all(t(pred), t(tgt), depth_pred=d_pred[:1].repeat(1, 1, 16, 16),
+                        depth_gt=d_gt[:1].repeat(1, 1, 16, 16))
+    assert tuple(out) == metric_spec.METRICS  # the per-image CSV's column order
+
+
+def test_a_metric_missing_from_the_spec_fails_at_import(monkeypatch):
+    import importlib
+
+    from nvs import metric_spec
+
+    monkeypatch.setattr(metric_spec, "METRICS", metric_spec.METRICS[:-1])
+    try:
+        with pytest.raises(ImportError, match="nvs.metric_spec specifies"):
+            importlib.reload(M)
+    finally:
+        monkeypatch.undo()
+        importlib.reload(M)
 
 
 def test_compute_all_is_float32_under_bf16_autocast():

@@ -18,7 +18,7 @@ from nvs.errors import UserError
 from nvs.geometry import inverse_warp, max_warp_displacement, pose_matrix, project_to_source
 from nvs.models import skips as skips_mod
 from nvs.models.depth_decoder import DepthDecoder
-from nvs.models.net import Extras
+from nvs.types import Extras
 from nvs.models.skips import AdaptiveWarpedSkips, PlainSkips, WarpedSkips, level_displacement
 from tests.conftest import CONF_DIR, compose_train, fixture_batch
 

@@ -9,8 +9,8 @@ import pytest
 import torch
 from torch import nn
 
-from nvs.models import vgg
-from nvs.models.vgg import LPIPS, VGG16Features, load_weights
+from nvs import perceptual as vgg
+from nvs.perceptual import LPIPS, VGG16Features, load_weights
 
 
 @pytest.fixture(scope="module")

@@ -19,7 +19,7 @@ from nvs.data.datamodule import build_datamodule
 from nvs.data.kitti import ScenesFormat
 from nvs.data.shapenet import ObjectsFormat
 from nvs.errors import UserError
-from nvs.models.net import Extras
+from nvs.types import Extras
 from nvs.viewer.controls import ObjectControls, SceneControls, build_controls
 from nvs.viewer.images import decode_upload
 from nvs.viewer.load import ViewerProcess, measure

@@ -6,6 +6,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from nvs.choices import check_choice
+
 NORMS = {
     "instance": lambda c: nn.InstanceNorm2d(c, affine=False),
     "batch": lambda c: nn.BatchNorm2d(c),
@@ -13,14 +15,6 @@ NORMS = {
 }
 PADDINGS = ("zeros", "reflect")
 INITS = ("normal", "default")
-UPSAMPLES = ("nearest", "bilinear")
-
-
-def check_choice(value, choices, name: str):
-    """One clear error for a switch given a value it does not know (``name`` is the config key to fix)."""
-    if value not in choices:
-        raise ValueError(f"{name}={value!r}: choose one of {list(choices)}")
-    return value
 
 
 def act() -> nn.Module:
@@ -53,15 +47,6 @@ def up_transposed(cin: int, cout: int, norm: str) -> nn.Sequential:
 def upsample2(x: torch.Tensor) -> torch.Tensor:
     """Bilinear x2 (B,C,h,w) -> (B,C,2h,2w)."""
     return F.interpolate(x, scale_factor=2.0, mode="bilinear", align_corners=False)
-
-
-def upsample_side(x: torch.Tensor, size, mode: str) -> torch.Tensor:
-    """A side prediction (B,3,h,w) brought to ``size``: nearest (the authors' code) or bilinear."""
-    if tuple(x.shape[-2:]) == tuple(size):
-        return x
-    if mode == "nearest":
-        return F.interpolate(x, size=size, mode="nearest")
-    return F.interpolate(x, size=size, mode="bilinear", align_corners=False)
 
 
 class UpStage(nn.Module):

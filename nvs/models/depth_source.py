@@ -3,7 +3,7 @@ fronto-parallel plane per sample predicted from the latent, or the data's ground
 
 Every source is called as ``source(z_t, z_s, encode_target, batch, needs) -> {"depth": (B,1,S,S), extras...}``:
 the target depth of the transformed latent z_t (B,n,3) plus the depth extras the losses asked for (``needs``,
-see ``nvs.models.net.Extras``). ``encode_target()`` returns the target image's own latent and is called only when
+see ``nvs.types.Extras``). ``encode_target()`` returns the target image's own latent and is called only when
 depth consistency asks for it.
 """
 
@@ -15,10 +15,9 @@ import torch
 import torch.nn as nn
 
 from nvs.errors import UserError
-from nvs.models.blocks import check_choice
+from nvs.choices import check_choice
 from nvs.models.depth_decoder import DepthDecoder
-from nvs.models.net import Extras
-from nvs.types import Batch, Outputs
+from nvs.types import Batch, Extras, Outputs
 
 
 NORM_BATCHES = ("separate", "joint")

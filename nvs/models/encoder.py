@@ -6,7 +6,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from nvs.models.blocks import NORMS, PADDINGS, check_choice, conv3, down
+from nvs.choices import check_choice
+from nvs.models.blocks import NORMS, PADDINGS, conv3, down
 
 SKIP_CHANNELS = {"conv0": 64, "conv2": 128, "conv3": 256, "conv4": 256}
 SKIP_STRIDES = {"conv0": 1, "conv2": 4, "conv3": 8, "conv4": 16}

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from nvs.geometry import about_pivot
-from nvs.models.blocks import check_choice
+from nvs.choices import check_choice
 
 ROTATIONS = ("code", "exact")
 

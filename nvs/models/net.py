@@ -7,31 +7,16 @@ from collections.abc import Callable
 import torch
 import torch.nn as nn
 
-from nvs.models.blocks import check_choice, init_weights
+from nvs.choices import check_choice
+from nvs.models.blocks import init_weights
 from nvs.models.encoder import Encoder
 from nvs.models.latent import ROTATIONS, transform_latent
 from nvs.models.pixel_decoder import PixelDecoder
 from nvs.models.warp import check_warp, warp
-from nvs.types import Batch, Outputs
+from nvs.types import Batch, Extras, Outputs, to_image_range, to_model_range
 
 # An encoded source image: latent points z_s (B,n,3) and the encoder's skip features {level: (B,C,h,w)}.
 Encoded = tuple[torch.Tensor, dict[str, torch.Tensor]]
-
-
-class Extras:
-    """Names of outputs that only some losses read; a forward computes only those requested."""
-
-    DEPTH_FROM_TGT = "depth_from_tgt"  # psi_d(z_t), z_t encoded from the target image (depth consistency)
-    DEPTH_SRC = "depth_src"  # psi_d(z_s), the source view's own depth (edge smoothness on the source)
-    WARPED_SRC = "warped_src"  # source image warped by the predicted target depth (warp loss)
-
-
-def to_model_range(img: torch.Tensor) -> torch.Tensor:
-    return img * 2.0 - 1.0
-
-
-def to_image_range(x: torch.Tensor) -> torch.Tensor:
-    return (x + 1.0) * 0.5
 
 
 def decode_depths(encoder: nn.Module, depth_source: nn.Module, z_s: torch.Tensor, z_t: torch.Tensor, batch: Batch,

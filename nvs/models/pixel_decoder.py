@@ -5,7 +5,9 @@ from __future__ import annotations
 import torch
 import torch.nn as nn
 
-from nvs.models.blocks import NORMS, UPSAMPLES, Trunk, UpStage, act, check_choice, upsample_side
+from nvs.choices import check_choice
+from nvs.models.blocks import NORMS, Trunk, UpStage, act
+from nvs.scales import UPSAMPLES, upsample_side
 from nvs.models.encoder import SKIP_CHANNELS
 
 

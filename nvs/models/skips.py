@@ -14,7 +14,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from nvs.geometry import downsample_depth, max_warp_displacement, scale_intrinsics
-from nvs.models.blocks import check_choice
+from nvs.choices import check_choice
 from nvs.models.encoder import SKIP_CHANNELS, SKIP_STRIDES
 from nvs.models.warp import check_warp, warp
 

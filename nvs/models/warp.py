@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 
 from nvs.geometry import BORDER_TOLERANCE, MIN_DEPTH, inverse_warp, invert_pose
-from nvs.models.blocks import check_choice
+from nvs.choices import check_choice
 
 ALIGNS = ("code", "exact")
 WARP_PADDINGS = ("border", "zeros")

@@ -5,7 +5,7 @@ A network of nvs's forward contract (nvs/types.py): ``forward(batch, needs) -> o
     rgb_scales [(B,3,H,W) in [-1,1]]   predictions coarse -> fine (one scale here: recon_final fits)
     depth      (B,1,H,W) > 0           the predicted target depth (depth metrics, the viewer, videos, point clouds)
 It reads only the batch keys of the data contract (src, K, T_tgt_src); ``needs`` names extras that some nvs losses
-request (nvs.models.net.Extras), which this network does not produce, so use losses that read rgb/rgb_scales/depth.
+request (nvs.types.Extras), which this network does not produce, so use losses that read rgb/rgb_scales/depth.
 """
 
 from __future__ import annotations

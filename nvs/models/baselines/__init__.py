@@ -1,7 +1,9 @@
 """Published baselines retrained in the same harness (``model=tatarchenko|chen|sun``), plus what they share.
 
-Each network has the same ``forward(batch, needs) -> outputs`` as ``NVSNet``; a loss that reads an output or extra
-the baseline cannot produce stops the run with one message naming the model, the output and the way out.
+Each network has the same ``forward(batch, needs) -> outputs`` as ``NVSNet`` and lists the extras it can compute in
+``provides``: a loss that needs another extra stops the build (``nvs.build.check_needs``), and one that reads an output
+the baseline lacks stops at its first read (``BaselineOutputs``), each with one message naming the model, the output
+and the way out.
 """
 
 from __future__ import annotations
@@ -15,8 +17,6 @@ from nvs.geometry import about_pivot
 
 # Length of the pose code fed to the baselines' pose branches (see ``pose_code``).
 POSE_DIM = 12
-# Output of models that blend several full-resolution predictions: {branch name: (B,3,H,W) in [0,1]}.
-RGB_BRANCHES = "rgb_branches"
 
 
 class MissingOutputError(UserError, KeyError):
@@ -38,15 +38,6 @@ class BaselineOutputs(dict):
         raise MissingOutputError(
             f"model '{self.model}' does not output '{key}', which an enabled loss reads; "
             f"drop that term from loss=[...] (this model outputs: {', '.join(sorted(self))})")
-
-
-def check_needs(model: str, needs: frozenset[str], provides: frozenset[str]) -> None:
-    """Raise one clear error if the enabled losses request extras this model cannot produce."""
-    missing = sorted(set(needs) - set(provides))
-    if missing:
-        have = ", ".join(sorted(provides)) or "none"
-        raise UserError(f"model '{model}' cannot provide {', '.join(repr(m) for m in missing)} that an enabled loss "
-                        f"reads; drop that term from loss=[...] (extras this model provides: {have})")
 
 
 def pose_code(T_tgt_src: torch.Tensor, pivot: torch.Tensor) -> torch.Tensor:

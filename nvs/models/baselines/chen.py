@@ -9,9 +9,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from nvs.geometry import BORDER_TOLERANCE, about_pivot, project_to_source, sample_at
-from nvs.models.baselines import BaselineOutputs, check_needs
-from nvs.models.net import Extras, to_model_range
-from nvs.types import Batch, Outputs
+from nvs.models.baselines import BaselineOutputs
+from nvs.types import Batch, Extras, Outputs, to_model_range
 
 LATENT_ROTATIONS = ("code", "exact")
 
@@ -160,7 +159,6 @@ class Chen(nn.Module):
         return out
 
     def forward(self, batch: Batch, needs: frozenset[str] = frozenset()) -> Outputs:
-        check_needs("chen", needs, self.provides)
         src, K, T = batch["src"], batch["K"], batch["T_tgt_src"]
         z_s = self.encoder(to_model_range(src))
         z_t = transform_points(z_s, T, batch["pivot"], self.latent_rotation)

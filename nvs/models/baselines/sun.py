@@ -6,9 +6,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from nvs.models.baselines import POSE_DIM, RGB_BRANCHES, BaselineOutputs, check_needs, pose_code
-from nvs.models.net import to_image_range, to_model_range
-from nvs.types import Batch, Outputs
+from nvs.models.baselines import POSE_DIM, BaselineOutputs, pose_code
+from nvs.types import RGB_BRANCHES, Batch, Outputs, to_image_range, to_model_range
 
 # Decoder widths of Sun et al.'s joint decoder, stage by stage from the bottleneck up (its output layers use half
 # of the last one).
@@ -212,7 +211,6 @@ instead of their two Adams. The adversarial term on the pixel module is the
         return [{"params": flow}, group]
 
     def forward(self, batch: Batch, needs: frozenset[str] = frozenset()) -> Outputs:
-        check_needs("sun", needs, self.provides)
         src = batch["src"]
         B, _, H, W = src.shape
         pose = pose_code(batch["T_tgt_src"], batch["pivot"]).to(src.dtype)

@@ -6,10 +6,9 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from nvs.models.baselines import POSE_DIM, BaselineOutputs, check_needs, halvings, pose_code
+from nvs.models.baselines import POSE_DIM, BaselineOutputs, halvings, pose_code
 from nvs.models.blocks import act, down, up_transposed
-from nvs.models.net import to_image_range, to_model_range
-from nvs.types import Batch, Outputs
+from nvs.types import Batch, Outputs, to_image_range, to_model_range
 
 
 class Tatarchenko(nn.Module):
@@ -55,7 +54,6 @@ class Tatarchenko(nn.Module):
                 nn.init.zeros_(m.bias)
 
     def forward(self, batch: Batch, needs: frozenset[str] = frozenset()) -> Outputs:
-        check_needs("tatarchenko", needs, self.provides)
         x = self.encoder(to_model_range(batch["src"]))
         if self.bottleneck != 4:
             x = F.adaptive_avg_pool2d(x, 4)
