@@ -17,6 +17,12 @@ from nvs import stress
 from nvs.geometry import inverse_warp, invert_pose, pose_matrix, project_to_source
 from nvs.losses import LossTerm
 from nvs.module import NonFiniteLossError
+from nvs.stress.batches import adversarial_batches, stress_batch
+from nvs.stress.geometry import check_warp, geometry_cases
+from nvs.stress.gradcheck import float32_inside, float64_kept, gradcheck_cases, run_gradcheck
+from nvs.stress.options import train_config
+from nvs.stress.precision import forward_backward, warp_position_rows
+from nvs.stress.training import train_under_stress
 from tests.conftest import compose_train
 
 PROPERTY = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -93,13 +99,13 @@ def test_invert_pose_round_trip(cam):
 
 
 # -- finiteness under extreme inputs --------------------------------------------------------------------------------
-CASES = stress.geometry_cases()
+CASES = geometry_cases()
 OUTSIDE_CONTRACT = {c.name for c in CASES if "outside the contract" in c.name}
 
 
 @pytest.mark.parametrize("case", CASES, ids=[c.name for c in CASES])
 def test_warp_outputs_and_gradients_stay_finite(case):
-    c = stress.check_warp(case)
+    c = check_warp(case)
     assert c.finite_out and c.finite_grad_src_depth and c.masked and c.expectation_met, c
     if case.name not in OUTSIDE_CONTRACT:
         assert c.finite_grad_K_T, c
@@ -108,7 +114,7 @@ def test_warp_outputs_and_gradients_stay_finite(case):
 @pytest.mark.parametrize("case", [c for c in CASES if c.name in OUTSIDE_CONTRACT],
                          ids=[c.name for c in CASES if c.name in OUTSIDE_CONTRACT])
 def test_nonfinite_depth_is_no_data(case):
-    assert stress.check_warp(case).finite_grad_K_T
+    assert check_warp(case).finite_grad_K_T
 
 
 def test_geometry_cases_cover_the_issue_ranges():
@@ -119,7 +125,7 @@ def test_geometry_cases_cover_the_issue_ranges():
 
 
 # -- float64 gradcheck ----------------------------------------------------------------------------------------------
-GRAD_CASES = stress.gradcheck_cases()
+GRAD_CASES = gradcheck_cases()
 
 
 def test_gradcheck_covers_every_loss_term():
@@ -134,38 +140,74 @@ def test_gradcheck_covers_every_loss_term():
 @pytest.mark.parametrize("case", GRAD_CASES, ids=[c.name for c in GRAD_CASES])
 def test_gradcheck_float64(case):
     """Analytic gradients match finite differences (with float64 kept through ``.float()``)."""
-    with stress.float64_kept():
-        ok, why = stress.run_gradcheck(case)
+    with float64_kept():
+        ok, why = run_gradcheck(case)
     assert ok, why
 
 
 @pytest.mark.parametrize("case", GRAD_CASES, ids=[c.name for c in GRAD_CASES])
 def test_terms_compute_in_float64_as_is(case):
-    assert stress.float32_inside(case) == ""
+    assert float32_inside(case) == ""
 
 
-def test_float64_kept_restores_tensor_float():
-    x = torch.ones(2, dtype=torch.float64)
-    with stress.float64_kept():
-        assert x.float().dtype == torch.float64
+def test_float64_kept_leaves_float64_alone_without_patching_torch():
+    x = torch.ones(2, dtype=torch.float64, requires_grad=True)
+    original = torch.Tensor.float
+    with float64_kept():
+        assert torch.Tensor.float is original  # a torch function mode, not a patched class attribute
+        kept = x.float()
+        assert kept.dtype == torch.float64 and kept is x
+        assert torch.ones(2, dtype=torch.bfloat16).float().dtype == torch.float32  # other dtypes still cast
+        assert torch.ones(2, dtype=torch.float64).to(torch.float32).dtype == torch.float32  # only .float()
     assert x.float().dtype == torch.float32
+
+
+def test_float32_inside_names_a_cast_to_float32():
+    """The check behind the 'as is' column can fail: a function that drops to float32 inside is named."""
+    from nvs.stress.gradcheck import GradcheckCase
+
+    x = torch.rand(3, dtype=torch.float64, requires_grad=True)
+    cast_back = GradcheckCase("casts", lambda t: (t.float() * 1.1).to(torch.float64), (x,))
+    assert float32_inside(cast_back).startswith("computes in float32 inside")
+    returns = GradcheckCase("returns", lambda t: t.float() * 1.1, (x,))
+    assert float32_inside(returns) == "returns float32 for float64 inputs"
+    assert run_gradcheck(cast_back)[0] is False
+    with float64_kept():
+        assert run_gradcheck(cast_back) == (True, "")
+
+
+# -- the stress batches ---------------------------------------------------------------------------------------------
+def test_adversarial_batches_follow_the_contract_with_the_stress_camera():
+    batches = adversarial_batches(S=16)
+    assert len(batches) == 9
+    for name, make in batches.items():
+        b = make(0)
+        assert b["src"].shape == b["tgt"].shape == (2, 3, 16, 16) and b["T_tgt_src"].shape == (2, 4, 4), name
+        assert float(b["K"][0, 0, 2]) == 7.5 and torch.equal(b["pivot"][0], torch.tensor([0.0, 0.0, 2.0])), name
+    assert float(batches["focal 1 px"](0)["K"][0, 0, 0]) == 1.0
+    assert float(batches["focal 1e5 px"](0)["K"][0, 0, 0]) == 1e5
+    assert float(batches["constant white images"](0)["src"].min()) == 1.0
+    steps = batches["random rotations up to 180°"]
+    assert not torch.equal(steps(0)["T_tgt_src"], steps(1)["T_tgt_src"])  # a new rotation every step
+    scenes = stress_batch("scenes")
+    assert torch.equal(scenes["pivot"], torch.zeros(2, 3)) and float(scenes["K"][0, 0, 0]) == 40.0
 
 
 # -- precision ------------------------------------------------------------------------------------------------------
 def test_paper_model_forward_backward_under_bf16_autocast_is_finite(tmp_path):
     from nvs.build import build_module
 
-    module = build_module(stress.compose(["model=nvs", "loss=[recon,depth_consistency,edge_smooth,warp]"],
+    module = build_module(train_config(["model=nvs", "loss=[recon,depth_consistency,edge_smooth,warp]"],
                                          str(tmp_path)))
-    batch = stress.stress_batch("objects")
-    rgb32, d32, _, ok32 = stress._forward_backward(module, batch, None)
-    rgb, d, _, ok = stress._forward_backward(module, batch, ("cpu", torch.bfloat16))
+    batch = stress_batch("objects")
+    rgb32, d32, _, ok32 = forward_backward(module, batch, None)
+    rgb, d, _, ok = forward_backward(module, batch, ("cpu", torch.bfloat16))
     assert ok32 and ok
     assert (rgb - rgb32).abs().mean() < 0.05 and ((d - d32).abs() / d32).mean() < 0.05
 
 
 def test_warp_under_autocast_samples_where_fp32_does():
-    (row,) = stress.warp_position_rows(sizes=(256,))
+    (row,) = warp_position_rows(sizes=(256,))
     projection_max, skip_max = (float(cell.split(" / ")[0]) for cell in row[1:])
     assert projection_max < 0.01 and skip_max < 0.01, row  # pixels
 
@@ -232,7 +274,7 @@ def test_stress_report_has_provenance_and_tables(tmp_path):
     text = stress.main(["--sections", "geometry,gradcheck", "--out", str(out)])
     assert out.read_text() == text
     for needle in ("Command: `python -m nvs.stress --sections geometry,gradcheck", "Git SHA:", "Date:", "Device:",
-                   f"torch {torch.__version__}", "## 1. Geometry under extremes", "## 2. float64 gradcheck",
+                   f"torch: {torch.__version__}", "## 1. Geometry under extremes", "## 2. float64 gradcheck",
                    "| identity pose | yes | yes | yes | yes | 1.000 |"):
         assert needle in text, needle
     assert not list(tmp_path.glob(".*.tmp"))
@@ -259,7 +301,7 @@ def test_training_under_stress_counts_nonfinite_steps():
             return out
 
     module = NVSModule(Tiny(), {"nan": NaNFrom(start=2)}, optimizer=None)
-    batch = stress.stress_batch("objects", S=16)
-    run = stress.train_under_stress(module, lambda i: batch, steps=3)
+    batch = stress_batch("objects", S=16)
+    run = train_under_stress(module, lambda i: batch, steps=3)
     # Anomaly detection stops the NaN backward of step 1 and names it; step 0 was clean.
     assert run.losses == [0.0] and run.error.startswith("step 1:") and "nan" in run.error.lower()
