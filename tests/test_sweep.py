@@ -60,12 +60,13 @@ def test_each_study_carries_both_reference_rows_per_dataset():
 
 def test_runs_shared_between_studies_have_the_same_config(tmp_path):
     """A run name used by several studies (chen_chairs, nvs_chairs, ...) must be one job, not a silent conflict."""
-    keys: dict[str, tuple[str, str]] = {}
+    keys: dict[str, tuple[str, str, str]] = {}
     for path in STUDIES:
         study = sweep.load_study(path)
         for job in sweep.plan(study, tmp_path):
-            seen = keys.setdefault(job.dir.name, (job.key, study.name))
-            assert seen[0] == job.key, f"{job.dir.name}: {seen[1]} and {study.name} define it differently"
+            seen = keys.setdefault(job.dir.name, (job.key, job.digest, study.name))
+            assert seen[0] == job.key, f"{job.dir.name}: {seen[2]} and {study.name} define it differently"
+            assert seen[1] == job.digest, f"{job.dir.name}: {seen[2]} and {study.name} compose it differently"
     assert "nvs_chairs_s0" in keys and "chen_chairs_s0" in keys
 
 

@@ -12,8 +12,8 @@ digest. A finished job stays valid while its stored config is compatible with th
   - a key present then and absent now -> stale (a loss term or a component left the defaults);
   - a key absent then and present now -> still valid: a new setting is assumed to default to the behaviour the
     job was trained with (the rule every new config key must follow; a default that changes results needs
-    ``--force``, as a code change does) -- unless it arrives inside a new component (a mapping with ``_target_``,
-    e.g. a loss term added to the defaults), which is a change.
+    ``--force``, as a code change does) -- unless the new node is or holds a component (a mapping with
+    ``_target_``, e.g. a loss term or a callback added to the defaults), which is a change.
 A job whose key differs from its record's (the row's overrides changed) is stale too.
 
 Records written before keys were override-based (no ``version`` field; their key was the digest of the whole
@@ -170,11 +170,20 @@ def config_changes(old: Any, new: Any, prefix: str = "") -> list[str]:
         if k not in new:
             out.append(f"{prefix}{k}")
         elif k not in old:
-            if isinstance(new[k], dict) and "_target_" in new[k]:
+            if _has_component(new[k]):
                 out.append(f"{prefix}{k}")
         else:
             out += config_changes(old[k], new[k], f"{prefix}{k}.")
     return out
+
+
+def _has_component(node: Any) -> bool:
+    """Whether a config node is, or holds at any depth, a component (a mapping with ``_target_``)."""
+    if isinstance(node, dict):
+        return "_target_" in node or any(_has_component(v) for v in node.values())
+    if isinstance(node, list):
+        return any(_has_component(v) for v in node)
+    return False
 
 
 def read_json(path: Path) -> dict | None:

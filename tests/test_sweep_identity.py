@@ -1,0 +1,174 @@
+"""The study schema fails on unknown keys naming file and key; a job's identity survives a new config key with its
+old default and goes stale when a value changes; the recorder a training job loads imports nothing heavy."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from omegaconf import open_dict
+
+from nvs.errors import UserError
+from nvs.sweep import jobs as sweep_jobs
+from nvs.sweep.jobs import JOB_RECORD, Status, config_changes, config_digest, plan, prepare_job_dir
+from nvs.sweep.study import load_study
+
+REPO = Path(__file__).resolve().parents[1]
+STUDY = {"name": "ident", "seeds": [0], "size": 64, "steps": 10,
+         "rows": [{"name": "full", "experiment": "nvs_chairs"},
+                  {"name": "copy", "reference": "copy_source", "data": "chairs"}]}
+
+
+def _write(tmp_path: Path, study: dict) -> Path:
+    path = tmp_path / "ident.yaml"
+    path.write_text(json.dumps(study))
+    return path
+
+
+# -- the schema ----------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("bad, where", [
+    ({"colour": "red"}, ": unknown key 'colour'; expected one of ["),
+    ({"rows": [{"name": "a", "colour": 1}]}, ": rows[0]: unknown key 'colour'; expected one of ["),
+    ({"rows": [{"name": "a"}, {"name": "b", "lable": "x", "runn": "y"}]}, ": rows[1]: unknown keys 'lable', 'runn'"),
+    ({"size": "big"}, ": size must be an integer, got 'big'"),
+    ({"rows": [{"name": "a", "paper": {"l1": "low"}}]}, ": rows[0]: paper.l1 must be a number, got 'low'"),
+    ({"rows": [{"name": "a", "overrides": "model/skips=none"}]}, ": rows[0]: overrides must be a list of strings"),
+    ({"rows": [{"label": "no name"}]}, ": rows[0]: 'name' is missing"),
+    ({"steps": None}, ": 'steps' is missing"),
+    ({"group_by": "model"}, ": group_by must be one of ['data'] or null, got 'model'"),
+])
+def test_a_bad_key_is_one_error_naming_the_file_and_the_key(tmp_path, bad, where):
+    path = _write(tmp_path, {**STUDY, **bad})
+    with pytest.raises(UserError) as err:
+        load_study(path)
+    assert str(err.value).startswith(f"{path}{where}"), str(err.value)
+    assert "\n" not in str(err.value)
+
+
+def test_the_schema_keeps_the_defaults_of_the_study_format(tmp_path):
+    study = load_study(_write(tmp_path, {"size": 64, "steps": 10, "seeds": 3, "rows": [{"name": "a"}]}))
+    assert study.name == "ident" and study.title == "ident" and study.seeds == (0, 1, 2)
+    assert study.metrics[:2] == ("l1", "ssim_paper") and study.table == "metrics" and study.group_by is None
+    row = study.rows[0]
+    assert (row.label, row.run, row.overrides, row.paper, row.oracle, row.kind) == ("a", "a", (), {}, False, "train")
+
+
+# -- identity ------------------------------------------------------------------------------------------------------
+def _finished(tmp_path: Path):
+    """The study planned and every job given a result (as if it had run with the config of today's conf/)."""
+    study = load_study(_write(tmp_path, STUDY))
+    root = tmp_path / "runs"
+    for job in plan(study, root):
+        prepare_job_dir(job, root)
+        (job.dir / "metrics.json").write_text(json.dumps({"data": "chairs", "test": {"l1": 0.1}}))
+    return study, root
+
+
+def _conf_changes(monkeypatch, change) -> None:
+    """As if a file in conf/ had changed: every composed config goes through ``change`` first."""
+    compose = sweep_jobs.compose
+
+    def changed(name, overrides):
+        cfg = compose(name, overrides)
+        with open_dict(cfg):
+            change(cfg)
+        return cfg
+
+    monkeypatch.setattr(sweep_jobs, "compose", changed)
+
+
+def test_a_new_config_key_with_its_old_default_keeps_finished_jobs_done(tmp_path, monkeypatch):
+    study, root = _finished(tmp_path)
+    before = {j.row.name: (j.key, j.digest) for j in plan(study, root)}
+
+    def add_setting(cfg):
+        cfg.model.new_switch = False          # a new switch at the behaviour the job was trained with
+        cfg.data.new_group = {"a": 1}         # a plain new mapping of settings
+
+    _conf_changes(monkeypatch, add_setting)
+    jobs = plan(study, root)
+    assert [j.status for j in jobs] == [Status.DONE, Status.DONE]
+    for j in jobs:
+        assert j.key == before[j.row.name][0]        # the key is made of overrides, not of conf/
+        assert j.digest != before[j.row.name][1]     # the config did change: only the rule keeps the job
+    assert sweep_jobs.to_launch(jobs) == []
+
+
+def test_a_changed_value_of_an_existing_key_makes_the_job_stale(tmp_path, monkeypatch):
+    study, root = _finished(tmp_path)
+    _conf_changes(monkeypatch, lambda cfg: setattr(cfg.data, "max_delta_azimuth", 123))
+    jobs = {j.row.name: j for j in plan(study, root)}
+    assert jobs["full"].status == Status.STALE and jobs["copy"].status == Status.STALE
+    assert "data.max_delta_azimuth" in sweep_jobs.stale_error(jobs["full"])
+    prepare_job_dir(jobs["full"], root)  # relaunching moves the old result aside first
+    assert not (jobs["full"].dir / "metrics.json").exists() and list((root / ".stale").glob("full_s0.*"))
+    assert json.loads((jobs["full"].dir / JOB_RECORD).read_text())["config"]["data"]["max_delta_azimuth"] == 123
+
+
+def test_a_new_component_or_a_removed_key_makes_the_job_stale(tmp_path, monkeypatch):
+    study, root = _finished(tmp_path)
+    _conf_changes(monkeypatch, lambda cfg: setattr(cfg.loss, "extra", {"_target_": "nvs.losses.X", "weight": 1.0})
+                  if "loss" in cfg else None)
+    assert {j.row.name: j.status for j in plan(study, root)} == {"full": Status.STALE, "copy": Status.DONE}
+    monkeypatch.undo()
+    _conf_changes(monkeypatch, lambda cfg: cfg.data.pop("max_delta_azimuth"))
+    assert all(j.status == Status.STALE for j in plan(study, root))
+
+
+def test_changed_row_overrides_change_the_key(tmp_path):
+    study, root = _finished(tmp_path)
+    changed = {**STUDY, "rows": [{**STUDY["rows"][0], "overrides": ["model/skips=none"]}, STUDY["rows"][1]]}
+    jobs = {j.row.name: j for j in plan(load_study(_write(tmp_path, changed)), root)}
+    assert jobs["full"].status == Status.STALE and jobs["copy"].status == Status.DONE
+    assert "model.skips" in sweep_jobs.stale_error(jobs["full"])
+
+
+def test_records_from_before_override_keys_are_judged_by_their_config(tmp_path, monkeypatch):
+    """A sweep_job.json of the earlier form (key = digest of the whole config, no version) stays a finished job."""
+    study, root = _finished(tmp_path)
+    for job in plan(study, root):
+        record = json.loads((job.dir / JOB_RECORD).read_text())
+        legacy = {k: record[k] for k in ("study", "row", "seed", "kind", "overrides", "config")}
+        (job.dir / JOB_RECORD).write_text(json.dumps({"key": config_digest(record["config"]), **legacy}))
+    assert all(j.status == Status.DONE for j in plan(study, root))
+    _conf_changes(monkeypatch, lambda cfg: setattr(cfg.model, "new_switch", False))
+    assert all(j.status == Status.DONE for j in plan(study, root))
+    monkeypatch.undo()
+    _conf_changes(monkeypatch, lambda cfg: setattr(cfg, "seed", 7))
+    assert all(j.status == Status.STALE for j in plan(study, root))
+
+
+def test_config_changes_by_hand():
+    old = {"a": 1, "m": {"x": 1, "y": [1, 2]}, "gone": 0}
+    new = {"a": 1, "m": {"x": 2, "y": [1, 2], "new": True}, "loss": {"t": {"_target_": "L"}}, "plain": {"k": 1}}
+    assert config_changes(old, new) == ["gone", "loss", "m.x"]  # a new node holding a component counts
+    assert config_changes(old, old) == []
+    assert config_changes(None, new) == ["<config>"]
+
+
+# -- import rules ----------------------------------------------------------------------------------------------------
+def _loaded_after(statement: str, names: tuple[str, ...]) -> list[str]:
+    code = f"import sys; {statement}; print([n for n in {names!r} if n in sys.modules])"
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120,
+                         env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"})
+    assert out.returncode == 0, out.stderr[-2000:]
+    return eval(out.stdout.strip().splitlines()[-1])
+
+
+def test_the_recorder_a_training_job_loads_imports_nothing_heavy():
+    heavy = ("lightning", "pandas", "nvs.build", "nvs.sweep.jobs", "nvs.sweep.study", "nvs.figures")
+    assert _loaded_after("import nvs.sweep.recorder", heavy) == []
+    # the target that older commands and docs name still resolves, to the same class
+    assert _loaded_after("import nvs.sweep as s, nvs.sweep.recorder as r; assert s.JobRecorder is r.JobRecorder",
+                         ("lightning",)) == []
+
+
+def test_the_sweep_and_the_figures_command_lines_import_no_other_command_line():
+    clis = ("nvs.figures", "nvs.sweep.__main__", "nvs.evaluate", "nvs.train", "nvs.bench", "nvs.stress")
+    assert _loaded_after("import nvs.sweep.__main__", clis) == ["nvs.sweep.__main__"]
+    assert _loaded_after("import nvs.figures", clis) == ["nvs.figures"]
+    # what the figures library loads when it rebuilds a run
+    assert _loaded_after("import nvs.paper_figures, nvs.checkpoints, nvs.build, nvs.compose", clis) == []
