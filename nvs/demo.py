@@ -9,6 +9,8 @@ import sys
 import time
 from pathlib import Path
 
+from nvs.metric_spec import IMAGE_METRICS, SPECS
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -33,13 +35,12 @@ def main(size: int = 64, experiment: str = "demo") -> None:
           f"data.size={size}", f"out_dir={copy_dir}", f"hydra.run.dir={copy_dir}"])
     ours = json.loads((run_dir / "metrics.json").read_text())
     copy = json.loads((copy_dir / "metrics.json").read_text())
-    keys = ["l1", "ssim_paper", "ssim", "psnr", "lpips"]
     print()
     print(f"chairs {size}x{size}, {ours['test']['n_pairs']} test pairs, {ours['steps']} training steps "
           f"({ours['train_wall_s'] / 60:.1f} min train, {ours['train_samples_per_s']:.1f} samples/s)")
-    print(f"{'model':<14}" + "".join(f"{k:>12}" for k in keys))
+    print(f"{'model':<14}" + "".join(f"{SPECS[k].label + ' ' + SPECS[k].arrow:>15}" for k in IMAGE_METRICS))
     for name, m in (("copy source", copy), ("nvs (ours)", ours)):
-        print(f"{name:<14}" + "".join(f"{m['test'][k]:>12.4f}" for k in keys))
+        print(f"{name:<14}" + "".join(f"{SPECS[k].format(m['test'][k]):>15}" for k in IMAGE_METRICS))
     ratio = ours["test"]["l1"] / copy["test"]["l1"]
     print(f"\nL1 of ours / copy source = {ratio:.2f}  (lower is better; paper's L1 is on [-1,1])")
     print(f"render {t_render / 60:.1f} min, total {(time.perf_counter() - t0) / 60:.1f} min")
