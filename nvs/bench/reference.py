@@ -11,9 +11,11 @@ encoder's last linear layer reads a 4×4 map of six stride-2 stages).
 from __future__ import annotations
 
 import contextlib
+import functools
 import io
 import sys
 import types
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 from types import SimpleNamespace
@@ -86,6 +88,16 @@ def _options(category: str) -> SimpleNamespace:
                            beta1=0.5, lambda_recon=10.0, lambda_depth=10.0, lambda_smooth=10.0, lambda_vgg=1.0)
 
 
+def _quiet(method):
+    """Their deprecated calls (F.upsample, the old torch.add overload) warn on every step: silenced in their calls."""
+    @functools.wraps(method)
+    def wrapper(*args, **kwargs):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return method(*args, **kwargs)
+    return wrapper
+
+
 class Reference:
     """The authors' BaseModel (chairs) on one nvs batch: ``train_step``, ``novel_view`` and ``eval_path``."""
 
@@ -110,6 +122,7 @@ class Reference:
     def parameter_count(self) -> int:
         return sum(p.numel() for n in self.networks()[:3] for p in n.parameters())
 
+    @_quiet
     def train_step(self, data: dict) -> None:
         """One iteration of their train.py: set_input, forward, optimize_parameters (zero_grad, backward_G, step)."""
         self.model.switch_mode("train")
@@ -117,6 +130,7 @@ class Reference:
         self.model.forward()
         self.model.optimize_parameters()
 
+    @_quiet
     def eval_path(self, data: dict) -> None:
         """Their eval.py's forward: eval mode, no grad, the whole training forward."""
         self.model.switch_mode("eval")
@@ -124,6 +138,7 @@ class Reference:
             self.model.set_input(data)
             self.model.forward()
 
+    @_quiet
     def novel_view(self, data: dict) -> torch.Tensor:
         """Only what the target view needs, through their own methods: encode, transform, depthdecode, the four
         skip warps (their inverse_warp, depth resized by F.upsample as their forward does) and decode."""
