@@ -54,13 +54,21 @@ def build_module(cfg: DictConfig) -> NVSModule:
     net = _instantiate(OmegaConf.create({k: v for k, v in model.items() if k != "name"}), "model", _convert_="all")
     losses = {name: _instantiate(OmegaConf.create(OmegaConf.to_container(node, resolve=True)), f"loss.{name}")
               for name, node in (cfg.get("loss") or {}).items()}
-    check_needs(str(cfg.model.get("name", "nvs")), net, losses)
+    check_losses(str(cfg.model.get("name", "nvs")), net, losses)
     optimizer = _instantiate(OmegaConf.create(OmegaConf.to_container(cfg.optim, resolve=True)), "optim")
     scheduler = _instantiate(cfg.scheduler, "scheduler") if cfg.get("scheduler") else None
     module = NVSModule(net, losses, optimizer, nonfinite=cfg.nonfinite, channels_last=bool(cfg.channels_last),
                        model_name=str(cfg.model.get("name", "nvs")), scheduler=scheduler)
     module.run_config = OmegaConf.to_container(cfg, resolve=True)
     return module
+
+
+def check_losses(model: str, net: torch.nn.Module, losses: dict[str, torch.nn.Module]) -> None:
+    """Build time: every enabled loss can be computed on the network's outputs (one clear error otherwise)."""
+    check_needs(model, net, losses)
+    for name, term in losses.items():
+        if hasattr(term, "check_network"):
+            term.check_network(net, f"loss.{name}")
 
 
 def check_needs(model: str, net: torch.nn.Module, losses: dict[str, torch.nn.Module]) -> None:

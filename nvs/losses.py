@@ -1,7 +1,9 @@
 """Loss terms, one class each: ``term(outputs, batch) -> scalar`` (unweighted); the module applies ``weight``.
 
 Each class declares ``needs``: the network extras (see ``nvs.types.Extras``) it reads, so a forward computes
-only what the enabled losses use. Image-space terms are computed on the [-1,1] range, as the paper's code does.
+only what the enabled losses use; ``check_network`` is its build-time check against the network (``nvs.build``).
+Every option is resolved in ``__init__`` (a function or a tuple chosen once), so ``forward`` tests no flag.
+Image-space terms are computed on the [-1,1] range, as the paper's code does.
 """
 
 from __future__ import annotations
@@ -31,15 +33,24 @@ class LossTerm(nn.Module):
             raise ValueError(f"loss weight must be >= 0, got {weight}")
         self.weight = float(weight)
 
+    def check_network(self, net: nn.Module, key: str) -> None:
+        """Build time: raise a UserError if this term cannot be computed on ``net``'s outputs (``key``: its config key)."""
 
-IMAGE_RANGES = ("model", "image")  # model: [-1,1] (what the authors' code feeds its losses); image: [0,1]
+
+def _identity(x: torch.Tensor) -> torch.Tensor:
+    return x
+
+
+# model: [-1,1] (what the authors' code feeds its losses); image: [0,1]
+IMAGE_RANGES = {"model": to_model_range, "image": _identity}
 
 
 class ReconLoss(LossTerm):
     """Multi-scale L1: sum_i w_i |up(I~_t^i) - I_t| on [-1,1]; ``scale_weights`` run from the finest scale to coarser.
 
     ``scale_weights=[1]`` is "w/o multi-scale" (final scale only). ``side_upsample``: how the coarser predictions
-    are brought to full size, ``nearest`` (the authors' code) or ``bilinear``.
+    are brought to full size, ``nearest`` (the authors' code) or ``bilinear``. At build time the network's
+    ``n_scales`` (the length of its ``rgb_scales``) must cover the weights.
     """
 
     def __init__(self, weight: float = 10.0, scale_weights=(1.0, 0.5, 0.2, 0.1), side_upsample: str = "nearest"):
@@ -49,14 +60,18 @@ class ReconLoss(LossTerm):
             raise ValueError("scale_weights must list at least the final scale")
         self.side_upsample = check_choice(side_upsample, UPSAMPLES, "side_upsample")
 
+    def check_network(self, net: nn.Module, key: str) -> None:
+        n_scales = getattr(net, "n_scales", None)
+        if n_scales is not None and len(self.scale_weights) > n_scales:
+            raise UserError(f"{key}.scale_weights has {len(self.scale_weights)} weights but the model predicts "
+                            f"{n_scales} scale(s); use loss=[recon_final,...] or {key}.scale_weights=[1.0]")
+
     def forward(self, out: Outputs, batch: Batch) -> torch.Tensor:
         tgt = to_model_range(batch["tgt"])
-        preds = out["rgb_scales"][::-1]  # finest first
-        if len(self.scale_weights) > len(preds):
-            raise UserError(f"loss.recon.scale_weights has {len(self.scale_weights)} weights but the model predicts "
-                            f"{len(preds)} scale(s); use loss=[recon_final,...] or loss.recon.scale_weights=[1.0]")
+        preds = out["rgb_scales"][::-1][:len(self.scale_weights)]  # finest first
         total = tgt.new_zeros(())
-        for w, p in zip(self.scale_weights, preds):
+        # strict: a network without ``n_scales`` that predicts too few scales still fails (less clearly)
+        for w, p in zip(self.scale_weights, preds, strict=True):
             p = upsample_side(p, tuple(tgt.shape[-2:]), self.side_upsample)
             total = total + w * (up(p) - tgt).abs().mean()
         return total
@@ -74,16 +89,20 @@ class VGGLoss(LossTerm):
                  image_range: str = "model", size: int | None = 224):
         super().__init__(weight)
         self.image_range = check_choice(image_range, IMAGE_RANGES, "vgg_range")
+        self.to_range = IMAGE_RANGES[image_range]
         if size is not None and (not isinstance(size, int) or size < 32):
             raise ValueError(f"vgg_size={size!r}: an image size of at least 32, or null for the native size")
         self.size = size
+        self.resize = _identity if size is None else self._resize
         self.vgg = VGG16Features(tuple(layers))
 
+    def _resize(self, x: torch.Tensor) -> torch.Tensor:
+        if tuple(x.shape[-2:]) == (self.size, self.size):
+            return x
+        return F.interpolate(x, size=(self.size, self.size), mode="bilinear", align_corners=False)
+
     def _input(self, img: torch.Tensor) -> torch.Tensor:
-        x = to_model_range(img) if self.image_range == "model" else img
-        if self.size is not None and tuple(x.shape[-2:]) != (self.size, self.size):
-            x = F.interpolate(x, size=(self.size, self.size), mode="bilinear", align_corners=False)
-        return x
+        return self.resize(self.to_range(img))
 
     def forward(self, out: Outputs, batch: Batch) -> torch.Tensor:
         pred, tgt = out["rgb"], batch["tgt"]
@@ -130,17 +149,14 @@ class EdgeSmoothLoss(LossTerm):
             raise ValueError(f"smooth_factor={factor!r}: must be >= 0")
         self.factor = float(factor)
         self.image_range = check_choice(image_range, IMAGE_RANGES, "smooth_range")
-        # The source term is a build-time choice: two classes of pairs, one loop.
+        self.to_range = IMAGE_RANGES[image_range]
+        # The source term is a build-time choice: the (depth, image) pairs summed, one loop over them.
         self.pairs = (("depth", "tgt"), (Extras.DEPTH_SRC, "src")) if on_source else (("depth", "tgt"),)
         self.needs = frozenset({Extras.DEPTH_SRC}) if on_source else frozenset()
 
     def forward(self, out: Outputs, batch: Batch) -> torch.Tensor:
-        total = 0.0
-        for depth_key, image_key in self.pairs:
-            img = up(batch[image_key])
-            img = to_model_range(img) if self.image_range == "model" else img
-            total = total + edge_aware_smoothness(up(out[depth_key]), img, self.factor)
-        return total
+        return sum(edge_aware_smoothness(up(out[depth_key]), self.to_range(up(batch[image_key])), self.factor)
+                   for depth_key, image_key in self.pairs)
 
 
 class WarpLoss(LossTerm):
@@ -155,10 +171,19 @@ class WarpLoss(LossTerm):
     def __init__(self, weight: float = 10.0, pixels: str = "all"):
         super().__init__(weight)
         self.masked = check_choice(pixels, ("all", "valid"), "warp_loss_pixels") == "valid"
+        self.reduce = _valid_mean if self.masked else _all_mean
 
     def forward(self, out: Outputs, batch: Batch) -> torch.Tensor:
         diff = (to_model_range(up(out[Extras.WARPED_SRC])) - to_model_range(batch["tgt"])).abs()
-        if not self.masked:
-            return diff.mean()
-        valid = up(out["warp_valid"])
-        return (diff * valid).sum() / (valid.sum() * diff.shape[1]).clamp_min(1.0)
+        return self.reduce(diff, out)
+
+
+def _all_mean(diff: torch.Tensor, out: Outputs) -> torch.Tensor:
+    """Mean of (B,3,H,W) over every pixel."""
+    return diff.mean()
+
+
+def _valid_mean(diff: torch.Tensor, out: Outputs) -> torch.Tensor:
+    """Mean of (B,3,H,W) over the pixels where ``out["warp_valid"]`` (B,1,H,W) is 1."""
+    valid = up(out["warp_valid"])
+    return (diff * valid).sum() / (valid.sum() * diff.shape[1]).clamp_min(1.0)

@@ -75,6 +75,7 @@ class AdversarialLoss(LossTerm):
             raise ValueError(f"start_step must be >= 0, got {start_step}")
         self.branch = branch
         self.needs = frozenset({RGB_BRANCHES}) if branch is not None else frozenset()
+        self._judged = self._final if branch is None else self._branch  # chosen once, not per step
         self.critic = PatchDiscriminator(n_layers)
         self.lr, self.betas, self.start_step = float(lr), tuple(float(b) for b in betas), int(start_step)
         self.register_buffer("steps", torch.zeros((), dtype=torch.long))
@@ -84,8 +85,13 @@ class AdversarialLoss(LossTerm):
     # -- what the critic judges ------------------------------------------------------------------------------------
     def prediction(self, out: Outputs) -> torch.Tensor:
         """The judged prediction on [-1,1]: (B,3,H,W)."""
-        img = out["rgb"] if self.branch is None else out[RGB_BRANCHES][self.branch]
-        return to_model_range(img)
+        return to_model_range(self._judged(out))
+
+    def _final(self, out: Outputs) -> torch.Tensor:
+        return out["rgb"]
+
+    def _branch(self, out: Outputs) -> torch.Tensor:
+        return out[RGB_BRANCHES][self.branch]
 
     @property
     def active(self) -> bool:

@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import hydra
 import pytest
 import torch
 import torch.nn.functional as F
@@ -15,11 +16,10 @@ from nvs.build import build_module
 from nvs.errors import UserError
 from nvs.geometry import inverse_warp, pose_matrix
 from nvs.models.baselines import halvings, pose_code
-from nvs.types import RGB_BRANCHES
 from nvs.models.baselines.chen import warp_border
 from nvs.models.baselines.sun import Sun
 from nvs.models.baselines.tatarchenko import Tatarchenko
-from nvs.types import Extras
+from nvs.types import RGB_BRANCHES, Extras
 from tests.conftest import compose_train, fixture_batch
 
 REPO = Path(__file__).resolve().parents[1]
@@ -323,10 +323,25 @@ def test_ground_truth_warp_treats_missing_depth_as_the_data_says():
     objects = GroundTruthWarp()(batch)["rgb"]
     assert torch.all(objects[..., :6, :] == 1.0)
     torch.testing.assert_close(objects[..., 6:, :], src[..., 6:, :], atol=1e-5, rtol=0)
-    scenes = GroundTruthWarp(data_format="scenes", sky_depth=100.0)(batch)["rgb"]
+    scenes = GroundTruthWarp(sky_disparity=0.01)(batch)["rgb"]
     torch.testing.assert_close(scenes, src, atol=1e-5, rtol=0)
     # a small sideways step: near pixels shift by f*t/z = 20*0.1/2 = 1 px, the far sky by 0.02 px
     T = torch.eye(4)[None]
     T[0, 0, 3] = 0.1
-    moved = GroundTruthWarp(data_format="scenes", sky_depth=100.0)({**batch, "T_tgt_src": T})["rgb"]
+    moved = GroundTruthWarp(sky_disparity=0.01)({**batch, "T_tgt_src": T})["rgb"]
     assert (moved[..., :6, 2:-2] - src[..., :6, 2:-2]).abs().max() < 0.02
+
+
+@pytest.mark.parametrize("data,sky_depth", [("chairs", None), ("cars", None), ("drive", 100.0), ("drive_wide", 100.0),
+                                            ("kitti", 100.0)])
+def test_ground_truth_warp_reads_the_sky_from_the_data_config_not_its_name(data, sky_depth, tmp_path):
+    """The model is told no dataset kind: scenes' sky sits at their disparity head's far limit, objects have none."""
+    from nvs.compose import compose
+    from nvs.models.reference import GroundTruthWarp
+
+    cfg = compose("evaluate", ["model=gt_warp", f"data={data}", f"paths.root_dir={tmp_path}"])
+    cfg.paths.output_dir = str(tmp_path)
+    node = OmegaConf.to_container(cfg.model, resolve=True)
+    assert "data_format" not in node
+    net = hydra.utils.instantiate({k: v for k, v in node.items() if k != "name"})
+    assert isinstance(net, GroundTruthWarp) and net.sky_depth == sky_depth

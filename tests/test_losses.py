@@ -110,3 +110,37 @@ def test_vgg_loss_has_no_trainable_parameters_and_passes_gradient():
 def test_negative_weight_is_refused():
     with pytest.raises(ValueError, match="weight"):
         ReconLoss(weight=-1.0)
+
+
+def test_too_many_scale_weights_are_refused_when_the_module_is_built(tmp_path):
+    from nvs.build import build_module
+    from nvs.errors import UserError
+    from tests.conftest import compose_train
+
+    cfg = compose_train(["experiment=tatarchenko_chairs", "loss.recon.scale_weights=[1.0,0.5,0.2,0.1]",
+                         f"paths.root_dir={tmp_path}"])
+    cfg.paths.output_dir = str(tmp_path)
+    with pytest.raises(UserError, match=r"loss\.recon\.scale_weights has 4 weights but the model predicts 1 scale"):
+        build_module(cfg)
+
+
+def test_recon_on_a_network_of_unknown_scales_still_refuses_too_few_predictions():
+    """A network without ``n_scales`` is not checked at build time; the loss then fails rather than drop weights."""
+    batch = fixture_batch()
+    out = _perfect_outputs(batch)
+    out["rgb_scales"] = out["rgb_scales"][-1:]
+    ReconLoss().check_network(torch.nn.Identity(), "loss.recon")  # nothing to check against
+    with pytest.raises(ValueError, match="zip"):
+        ReconLoss(scale_weights=[1.0, 0.5])(out, batch)
+
+
+def test_options_are_resolved_at_construction():
+    """forward tests no flag: the range, resize, pixel reduction and source term are chosen in __init__."""
+    import inspect
+
+    for cls in (VGGLoss, EdgeSmoothLoss, WarpLoss, ReconLoss):
+        src = inspect.getsource(cls.forward)
+        assert " if " not in src and "image_range" not in src and "masked" not in src, cls.__name__
+    assert EdgeSmoothLoss(on_source=False).pairs == (("depth", "tgt"),)
+    assert VGGLoss(size=None).resize(torch.zeros(1, 3, 40, 40)).shape[-1] == 40
+    assert VGGLoss(size=64).resize(torch.zeros(1, 3, 40, 40)).shape[-1] == 64

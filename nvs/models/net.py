@@ -42,6 +42,8 @@ class NVSNet(nn.Module):
     ``init`` (``nvs.models.blocks.init_weights``). The skips and the depth source carry their own.
     """
 
+    n_scales = 4  # len(rgb_scales): the pixel decoder's S/8, S/4, S/2 and S predictions
+
     def __init__(self, image_size: int, skips: nn.Module, depth: Callable[..., nn.Module], n_points: int = 200,
                  decoder_norm: str = "instance", conv0_norm: str = "instance", conv0_padding: str = "zeros",
                  latent_rotation: str = "code", side_upsample: str = "nearest", warp_align: str = "code",

@@ -12,6 +12,8 @@ from nvs.types import Batch, Outputs
 class CopySource(nn.Module):
     """Predicts the source image unchanged: the floor any method must beat."""
 
+    n_scales = 1  # len(rgb_scales)
+
     def __init__(self, image_size: int | None = None):
         super().__init__()
 
@@ -24,27 +26,33 @@ class GroundTruthWarp(nn.Module):
     """Warps the source with the ground-truth target depth: the ceiling a pure depth-based warping method could reach
     on the rendered data (needs ``depth_tgt``).
 
-    Pixels without ground-truth depth: for ``data_format='objects'`` they are background with no surface, so they
-    and pixels with no correspondence are filled white. For ``'scenes'`` they are sky: warped as if ``sky_depth``
-    away, and pixels with no correspondence keep the source pixel.
+    Pixels without ground-truth depth: with ``sky_disparity=None`` they are background with no surface, so they and
+    pixels with no correspondence are filled with ``fill`` (white). With a disparity they are sky, warped as if
+    ``1 / sky_disparity`` away, and pixels with no correspondence keep the source pixel (``conf/model/gt_warp.yaml``
+    reads it from the data config's depth head: its far limit).
     """
 
-    def __init__(self, image_size: int | None = None, fill: float = 1.0, data_format: str = "objects",
-                 sky_depth: float = 100.0):
+    n_scales = 1  # len(rgb_scales)
+
+    def __init__(self, image_size: int | None = None, fill: float = 1.0, sky_disparity: float | None = None):
         super().__init__()
-        if data_format not in ("objects", "scenes"):
-            raise ValueError(f"data_format={data_format!r}: expected 'objects' or 'scenes'")
+        if sky_disparity is not None and not sky_disparity > 0:
+            raise ValueError(f"sky_disparity={sky_disparity!r}: a positive disparity, or null for no sky")
         self.fill = fill
-        self.missing_depth = sky_depth if data_format == "scenes" else None
+        self.sky_depth = None if sky_disparity is None else 1.0 / float(sky_disparity)
+        # What stands where the ground truth has no depth, chosen once: (depth, fill) from (depth, src).
+        self.missing = self._background if sky_disparity is None else self._sky
+
+    def _background(self, depth: torch.Tensor, src: torch.Tensor) -> tuple[torch.Tensor, float]:
+        return depth, self.fill
+
+    def _sky(self, depth: torch.Tensor, src: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return torch.where(depth > 0, depth, torch.full_like(depth, self.sky_depth)), src
 
     def forward(self, batch: Batch, needs: frozenset[str] = frozenset()) -> Outputs:
         if "depth_tgt" not in batch:
             raise KeyError("GroundTruthWarp needs ground-truth target depth (data.loader.with_depth=true, depth/ files)")
-        depth = batch["depth_tgt"]
-        fill = self.fill
-        if self.missing_depth is not None:
-            depth = torch.where(depth > 0, depth, torch.full_like(depth, float(self.missing_depth)))
-            fill = batch["src"]
+        depth, fill = self.missing(batch["depth_tgt"], batch["src"])
         warped, valid = inverse_warp(batch["src"], depth, batch["K"], batch["T_tgt_src"])
         rgb = warped * valid + fill * (1 - valid)
         return {"rgb": rgb, "rgb_scales": [rgb * 2 - 1], "depth": depth}

@@ -24,6 +24,8 @@ class WarpRefine(nn.Module):
     """Args: image_size (the data's size; any), channels: width of the two small conv stacks,
     depth_range: (near, far) of the predicted depth in the data's pose units."""
 
+    n_scales = 1  # len(rgb_scales): checked against the recon loss's scale weights when the module is built
+
     def __init__(self, image_size: int, channels: int = 16, depth_range: tuple[float, float] = (1.0, 3.0)):
         super().__init__()
         self.image_size = image_size

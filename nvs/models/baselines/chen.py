@@ -131,6 +131,7 @@ class Chen(nn.Module):
     """
 
     provides = frozenset({Extras.DEPTH_FROM_TGT, Extras.DEPTH_SRC, Extras.WARPED_SRC})
+    n_scales = 1  # len(rgb_scales)
 
     def __init__(self, image_size: int, head: nn.Module, n_points: int = 200, latent_rotation: str = "code",
                  depth: Callable[..., nn.Module] | None = None):

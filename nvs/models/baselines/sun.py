@@ -174,6 +174,7 @@ instead of their two Adams. The adversarial term on the pixel module is the
     """
 
     provides = frozenset({RGB_BRANCHES})
+    n_scales = 1  # len(rgb_scales)
 
     def __init__(self, image_size: int, n_layers: int = 5, n_res_flow: int = 4, n_res_pixel: int = 0,
                  lstm_scales: int = 3, lstm_blocks: int = 2, padding_mode: str = "border",

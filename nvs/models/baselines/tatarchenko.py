@@ -29,6 +29,7 @@ class Tatarchenko(nn.Module):
     """
 
     provides: frozenset[str] = frozenset()
+    n_scales = 1  # len(rgb_scales)
 
     def __init__(self, image_size: int, fc_dim: int = 1024, pose_fc_dim: int = 64):
         super().__init__()
