@@ -12,11 +12,11 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from PIL import Image
 
-from nvs.data.render import flightgear, stk_objects, ufoai
+from nvs.data.render import flightgear, more_cars, stk_objects, ufoai
 from nvs.data.render.scene import Part
-from nvs.data.render.sources import ASSET_DIR, ModelSource, ac3d_parts, read_texture, slug  # noqa: F401 (re-export)
+from nvs.data.render.sources import (ASSET_DIR, ModelSource, ac3d_parts, read_texture, slug,  # noqa: F401
+                                     trimesh_parts)
 
 SH3D_DIR = Path("/usr/share/sweethome3d/furniture")
 # Sweet Home 3D's own default catalog (package sweethome3d, extracted by scripts/install_object_assets.sh).
@@ -28,7 +28,7 @@ COPYRIGHT = {p: Path(f"/usr/share/doc/{p}/copyright")
              for p in ("sweethome3d-furniture", "torcs-data", "trigger-rally-data")}
 COPYRIGHT.update({"sweethome3d": ASSET_DIR / "sweethome3d" / "usr/share/doc/sweethome3d/copyright",
                   flightgear.PACKAGE: flightgear.COPYRIGHT, ufoai.PACKAGE: ufoai.COPYRIGHT,
-                  stk_objects.PACKAGE: stk_objects.COPYRIGHT})
+                  stk_objects.PACKAGE: stk_objects.COPYRIGHT, **more_cars.COPYRIGHT})
 INSTALL_HINT = "install the asset packages with scripts/install_assets.sh"
 
 # ShapeNet's chair class holds chairs, armchairs, stools and lounge chairs; sofas and benches are other classes.
@@ -50,44 +50,6 @@ def _properties(z: zipfile.ZipFile, name: str = "PluginFurnitureCatalog.properti
     return props
 
 
-def _trimesh_parts(obj_path: Path) -> list[Part]:
-    """OBJ (+MTL, textures beside it) -> parts, via trimesh, with scene transforms applied."""
-    import trimesh
-
-    scene = trimesh.load(obj_path, force="scene", process=False)
-    parts = []
-    for name in scene.graph.nodes_geometry:
-        T, geom_name = scene.graph[name]
-        g = scene.geometry[geom_name]
-        if not isinstance(g, trimesh.Trimesh) or len(g.faces) == 0:
-            continue
-        pos = np.asarray(g.vertices, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
-        uv, image, color = None, None, np.array([0.8, 0.8, 0.8, 1.0])
-        vis = g.visual
-        if vis.kind == "texture" or isinstance(vis, trimesh.visual.TextureVisuals):
-            mat = vis.material
-            if isinstance(mat, trimesh.visual.material.PBRMaterial):
-                image = mat.baseColorTexture
-                if mat.baseColorFactor is not None:
-                    color = np.asarray(mat.baseColorFactor, dtype=np.float64) / 255.0
-            else:
-                image = getattr(mat, "image", None)
-                color = np.asarray(mat.diffuse, dtype=np.float64) / 255.0
-            if vis.uv is not None and len(vis.uv) == len(g.vertices):
-                uv = np.asarray(vis.uv, dtype=np.float64)
-            else:
-                image = None
-        elif vis.kind in ("face", "vertex"):
-            color = np.asarray(vis.main_color, dtype=np.float64) / 255.0
-        if image is not None:
-            color = color.copy()
-            color[:3] = np.maximum(color[:3], 1e-3)
-            # MTL files often pair a texture with Kd = 0 or a dark Kd; SH3D shows the texture unmodulated.
-            color[:3] = 1.0
-        parts.append(Part(pos, np.asarray(g.faces, dtype=np.int64), uv, image, color))
-    return parts
-
-
 def _sh3d_loader(catalog: Path, model_path: str, rotation: np.ndarray) -> Callable[[], list[Part]]:
     def load() -> list[Part]:
         folder = model_path.lstrip("/").rsplit("/", 1)[0] + "/"
@@ -95,7 +57,7 @@ def _sh3d_loader(catalog: Path, model_path: str, rotation: np.ndarray) -> Callab
             for member in z.namelist():
                 if member.startswith(folder) and not member.endswith("/"):
                     z.extract(member, tmp)
-            parts = _trimesh_parts(Path(tmp) / model_path.lstrip("/"))
+            parts = trimesh_parts(Path(tmp) / model_path.lstrip("/"))
             for p in parts:
                 if p.image is not None:
                     p.image.load()  # read the texture before the temp dir goes away
@@ -223,9 +185,9 @@ def _trigger_loader(name: str) -> Callable[[], list[Part]]:
                 if member.startswith(folder) and not member.endswith("/"):
                     z.extract(member, tmp)
             xml = (Path(tmp) / folder / f"{name}.vehicle").read_text()
-            body = _trimesh_parts(Path(tmp) / folder / f"{name}.obj")
+            body = trimesh_parts(Path(tmp) / folder / f"{name}.obj")
             wheel_obj = re.search(r'wheelmodel="([^"]+)"', xml).group(1)
-            wheel = _trimesh_parts(Path(tmp) / folder / wheel_obj)
+            wheel = trimesh_parts(Path(tmp) / folder / wheel_obj)
             for p in body + wheel:
                 if p.image is not None:
                     p.image.load()
@@ -259,13 +221,14 @@ def trigger_models() -> list[ModelSource]:
 def category_models(category: str) -> list[ModelSource]:
     """All candidate models of 'chairs' or 'cars' whose packages are present, sorted by id.
 
-    FlightGear and UFO:AI models are there only after scripts/install_object_assets.sh, SuperTuxKart's after
+    FlightGear, UFO:AI, OpenCity, PGDrive and assimp's models are there only after scripts/install_object_assets.sh,
+    SuperTuxKart's after
     scripts/install_drive_assets.sh (the full sets).
     """
     if category == "chairs":
         models = sh3d_models("chairs")
     elif category == "cars":
-        models = sh3d_models("cars") + torcs_models() + trigger_models()
+        models = sh3d_models("cars") + torcs_models() + trigger_models() + more_cars.more_cars()
     else:
         raise ValueError(f"unknown object category {category!r}")
     models += (flightgear.flightgear_models(category) + ufoai.ufoai_models(category)

@@ -26,8 +26,8 @@ def write_depth(path: Path, depth: np.ndarray) -> None:
 
 
 def write_credits(root: Path, lines: list[str], packages: list[str], copyright_files: dict[str, Path]) -> None:
-    """CREDITS.txt: one line per used model, then the Debian copyright file of every package used."""
-    text = ["Rendered with nvs.data.render from these Debian packages' models. Licences and authors:", ""]
+    """CREDITS.txt: one line per used model, then the copyright (licence) file of every package used."""
+    text = ["Rendered with nvs.data.render from these packages' models. Licences and authors:", ""]
     text += lines
     for pkg in packages:
         f = copyright_files.get(pkg)

@@ -1,4 +1,5 @@
-"""What every object source shares: the ModelSource record, ids, the extracted-assets folder, AC3D -> parts."""
+"""What every object source shares: the ModelSource record, ids, the extracted-assets folder, AC3D and
+trimesh-read files (OBJ, glTF) -> parts."""
 
 from __future__ import annotations
 
@@ -34,7 +35,6 @@ class ModelSource:
 def slug(*words: str) -> str:
     s = "-".join(words).lower()
     return re.sub(r"[^a-z0-9]+", "-", s).strip("-")
-
 
 
 def read_texture(name: str, dirs: list[Path]) -> Image.Image | None:
@@ -78,6 +78,44 @@ def ac3d_parts(path: Path, texture_dirs: list[Path], keep=lambda obj: True) -> l
         else:
             rgb = model.material_rgb[key[1]]
             parts.append(Part(pos, faces, None, None, np.array([*rgb, 1.0])))
+    return parts
+
+
+def trimesh_parts(obj_path: Path) -> list[Part]:
+    """OBJ (+MTL, textures beside it) or glTF 2.0 -> parts, via trimesh, with scene transforms applied."""
+    import trimesh
+
+    scene = trimesh.load(obj_path, force="scene", process=False)
+    parts = []
+    for name in scene.graph.nodes_geometry:
+        T, geom_name = scene.graph[name]
+        g = scene.geometry[geom_name]
+        if not isinstance(g, trimesh.Trimesh) or len(g.faces) == 0:
+            continue
+        pos = np.asarray(g.vertices, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
+        uv, image, color = None, None, np.array([0.8, 0.8, 0.8, 1.0])
+        vis = g.visual
+        if vis.kind == "texture" or isinstance(vis, trimesh.visual.TextureVisuals):
+            mat = vis.material
+            if isinstance(mat, trimesh.visual.material.PBRMaterial):
+                image = mat.baseColorTexture
+                if mat.baseColorFactor is not None:
+                    color = np.asarray(mat.baseColorFactor, dtype=np.float64) / 255.0
+            else:
+                image = getattr(mat, "image", None)
+                color = np.asarray(mat.diffuse, dtype=np.float64) / 255.0
+            if vis.uv is not None and len(vis.uv) == len(g.vertices):
+                uv = np.asarray(vis.uv, dtype=np.float64)
+            else:
+                image = None
+        elif vis.kind in ("face", "vertex"):
+            color = np.asarray(vis.main_color, dtype=np.float64) / 255.0
+        if image is not None:
+            color = color.copy()
+            color[:3] = np.maximum(color[:3], 1e-3)
+            # MTL files often pair a texture with Kd = 0 or a dark Kd; SH3D shows the texture unmodulated.
+            color[:3] = 1.0
+        parts.append(Part(pos, np.asarray(g.faces, dtype=np.int64), uv, image, color))
     return parts
 
 
