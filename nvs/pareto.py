@@ -98,8 +98,8 @@ def render_markdown(agg: pd.DataFrame, sources: list[Path], command: str) -> str
     ]
     for data, g in agg.groupby("data", sort=False):
         lines += [f"## {data}", "",
-                  f"| Row | study | seeds | {SPECS[l1].label} {SPECS[l1].arrow} | {SPECS[ssim].label} {SPECS[ssim].arrow} "
-                  "| train (s) | eval forward (ms/img) "
+                  f"| Row | study | seeds | {SPECS[l1].label} {SPECS[l1].arrow} "
+                  f"| {SPECS[ssim].label} {SPECS[ssim].arrow} | train (s) | eval forward (ms/img) "
                   "| L1 vs train | L1 vs eval | SSIM vs train | SSIM vs eval |",
                   "|---|---|---|---|---|---|---|---|---|---|---|"]
         for _, r in g.sort_values("l1").iterrows():

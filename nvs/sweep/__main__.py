@@ -10,8 +10,8 @@ Resumability: before launching, the runner writes ``sweep_job.json`` (the job's 
 define it, and its composed config) into the job directory. A job whose directory holds ``metrics.json`` and a
 record that still stands for it (``nvs.sweep.jobs`` says when) is done and never relaunched; an interrupted job
 resumes from ``checkpoints/last.ckpt`` via train.yaml's ``ckpt_path=auto``; a stale directory (the study or a value
-in ``conf/`` changed) is moved to ``<runs>/<scale>/.stale/`` first, so a stale checkpoint is never resumed. A failed job leaves ``failed.txt`` (its last error line) and is shown as
-failed in the tables.
+in ``conf/`` changed) is moved to ``<runs>/<scale>/.stale/`` first, so a stale checkpoint is never resumed. A failed
+job leaves ``failed.txt`` (its last error line) and is shown as failed in the tables.
 
 Collection writes ``results/<study>.csv`` (one line per job) and ``results/<study>.md`` (mean ± std over seeds
 per row, the paper's numbers beside ours; or, with ``table: cost``, cost against error with the cheapest row within

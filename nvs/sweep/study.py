@@ -20,8 +20,8 @@ from omegaconf import OmegaConf
 
 from nvs.errors import UserError
 from nvs.metric_spec import METRICS
+from nvs.runs import REFERENCE_MODELS  # the one list of the models evaluated without training
 
-from nvs.runs import REFERENCE_MODELS  # noqa: E402 - re-exported: one list of the models evaluated untrained
 # Table layouts: 'metrics' (the paper's tables: metrics, params, costs, paper numbers) or 'cost' (cost against error,
 # the cheapest row within tables.PICK_L1_TOLERANCE of the best non-oracle L1 marked).
 TABLES = ("metrics", "cost")
@@ -37,7 +37,7 @@ class Row:
     run: str = ""                  # run-directory stem (default: name); the same run in two studies is one job
     experiment: str | None = None
     overrides: tuple[str, ...] = ()
-    reference: Literal["copy_source", "gt_warp"] | None = None  # evaluated by nvs.evaluate, one seed
+    reference: Literal[REFERENCE_MODELS] | None = None  # copy_source | gt_warp: evaluated by nvs.evaluate, one seed
     data: str | None = None        # required for reference rows; for trained rows read from the composed config
     paper: dict[str, float] = field(default_factory=dict)
     oracle: bool = False           # uses ground truth at test time: shown, never the best or the pick of a cost table
@@ -67,7 +67,7 @@ class StudyFile:
     overrides: tuple[str, ...] = ()
     metrics: tuple[str, ...] | None = None  # default: every metric
     group_by: Literal["data"] | None = None
-    table: Literal["metrics", "cost"] = "metrics"
+    table: Literal[TABLES] = "metrics"
 
 
 @dataclass(frozen=True)
