@@ -25,9 +25,10 @@ test: setup
 test-all: setup
 	$(PYTHON) -m pytest -q -m "not gpu"
 
-# The full chairs/cars sets (docs/datasets.md): FlightGear and UFO:AI models fetched with apt-get download and only
-# their folders extracted under data/assets/ (scripts/install_object_assets.sh), SuperTuxKart's library objects
-# from the drive assets; then the renders at 64^2 and one contact sheet per source under docs/contact/.
+# The full chairs/cars sets (docs/datasets.md): FlightGear, UFO:AI, OpenCity and assimp models fetched with
+# apt-get download, PGDrive's with pip download, only their folders extracted under data/assets/
+# (scripts/install_object_assets.sh), SuperTuxKart's library objects from the drive assets; then the renders at 64^2
+# and one contact sheet per source under docs/contact/.
 # Not part of setup, test or demo.
 objects-full: setup
 	bash scripts/install_object_assets.sh
