@@ -62,6 +62,7 @@ EOF
     # The jeep is MS3D: assimp (assimp-utils, from scripts/install_assets.sh) writes it as OBJ + MTL, whose
     # texture path it writes Windows-style ('.\jeep1.jpg').
     ms3d="$out.partial/usr/share/assimp/models/MS3D"
+    command -v assimp >/dev/null || { echo "object assets: assimp missing: run scripts/install_assets.sh" >&2; exit 1; }
     assimp export "$ms3d/jeep1.ms3d" "$ms3d/jeep1.obj" >/dev/null
     sed -i 's#^map_Kd \.\\#map_Kd #' "$ms3d/jeep1.mtl"
   fi
