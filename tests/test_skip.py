@@ -277,9 +277,10 @@ def test_target_is_encoded_only_when_depth_consistency_is_on(depth, tmp_path):
     assert calls[0] == 1
 
 
-@pytest.mark.parametrize("model", ["nvs", "chen"])
-def test_evaluation_encodes_once_and_computes_no_loss_extras(model, tmp_path):
-    module = _module(tmp_path, f"model={model}", "loss=[recon,depth_consistency,edge_smooth,warp]")
+@pytest.mark.parametrize("model,scales", [("nvs", "[1.0,0.5,0.2,0.1]"), ("chen", "[1.0]")])
+def test_evaluation_encodes_once_and_computes_no_loss_extras(model, scales, tmp_path):
+    module = _module(tmp_path, f"model={model}", "loss=[recon,depth_consistency,edge_smooth,warp]",
+                     f"loss.recon.scale_weights={scales}")  # chen predicts one scale: checked at build time
     module.eval()
     calls = _count_calls(module.net.encoder)
     batch = fixture_batch()
