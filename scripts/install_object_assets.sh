@@ -21,11 +21,17 @@ declare -A MEMBERS=(
   [opencity-data]="./usr/share/games/opencity/graphism/vehicle/* ./usr/share/doc/opencity-data/copyright"
   [assimp-testmodels]="./usr/share/assimp/models/MS3D/jeep1.* ./usr/share/doc/assimp-testmodels/copyright"
 )
+# From UFO:AI's 240 MB model archive only these prefixes are unpacked (cars, chairs, the Japanese floor chair).
+UFOAI_PK3="models/objects/cars/ models/objects/furniture/chairs/ models/objects/japan/stoel."
+# What a finished extraction records in .complete: a changed member (or prefix) list re-extracts.
+stamp_of() {
+  if [ "$1" = ufoai-data ]; then printf '%s pk3: %s' "${MEMBERS[$1]}" "$UFOAI_PK3"; else printf '%s' "${MEMBERS[$1]}"; fi
+}
 
 for pkg in flightgear-data-base ufoai-data sweethome3d opencity-data assimp-testmodels; do
   out="$DEST/$pkg"
   # The stamp holds the member list: a changed list re-extracts.
-  if [ -f "$out/.complete" ] && [ "$(cat "$out/.complete")" = "${MEMBERS[$pkg]}" ]; then
+  if [ -f "$out/.complete" ] && [ "$(cat "$out/.complete")" = "$(stamp_of "$pkg")" ]; then
     echo "object assets: $pkg already extracted in $out"
     continue
   fi
@@ -47,13 +53,14 @@ for pkg in flightgear-data-base ufoai-data sweethome3d opencity-data assimp-test
   # shellcheck disable=SC2086  # the member list is a list of tar patterns
   dpkg-deb --fsys-tarfile "$deb" | tar -x -C "$out.partial" --wildcards ${MEMBERS[$pkg]}
   if [ "$pkg" = ufoai-data ]; then
-    # Only the cars and chairs of the 240 MB model archive: unpack them and drop the archive.
+    # Only the UFOAI_PK3 prefixes of the model archive: unpack them and drop the archive.
     pk3="$out.partial/usr/share/games/ufoai/base/0models.pk3"
-    python3 - "$pk3" "$out.partial/usr/share/games/ufoai/base" <<'EOF'
+    # shellcheck disable=SC2086  # the prefix list is a list of words
+    python3 - "$pk3" "$out.partial/usr/share/games/ufoai/base" $UFOAI_PK3 <<'EOF'
 import sys, zipfile
 with zipfile.ZipFile(sys.argv[1]) as z:
     for m in z.namelist():
-        if m.startswith(("models/objects/cars/", "models/objects/furniture/chairs/")) and not m.endswith("/"):
+        if m.startswith(tuple(sys.argv[3:])) and not m.endswith("/"):
             z.extract(m, sys.argv[2])
 EOF
     rm -f "$pk3"
@@ -68,7 +75,7 @@ EOF
   fi
   rm -f "$deb"
   rm -rf "$out" && mv "$out.partial" "$out"
-  printf '%s' "${MEMBERS[$pkg]}" > "$out/.complete"
+  stamp_of "$pkg" > "$out/.complete"
   echo "object assets: $pkg -> $out ($(du -sh "$out" | cut -f1), $(( $(date +%s) - t0 )) s)"
 done
 

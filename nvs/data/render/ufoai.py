@@ -44,8 +44,10 @@ CARS = {
     "cars/van2/van2": [],
     "cars/van3/van": [],
 }
-# Single seats only: bank1 and bench are benches, stleer a two-seat sofa.
+# Single seats only: bank1 and bench are benches, stleer a two-seat sofa; japan/stoel is a legless floor chair
+# (cushion and backrest). Not the alien pilot seat (alien/seat, a cockpit pod).
 CHAIRS = {f"furniture/chairs/{n}": [] for n in ("chair", "chair1", "chair2", "chair3")}
+CHAIRS["japan/stoel"] = []
 
 # MD2 (x forward, y left, z up) -> y up: (x, y, z) -> (y, z, x), a proper rotation; MD2's +x becomes +z.
 _MD2_TO_YUP = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
@@ -54,7 +56,7 @@ _MD2_TO_YUP = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
 FRONT_DEFAULT = {"x": "+x", "z": "+z"}
 FRONT = {
     "cars/4x4/4x4": "-x", "cars/buggy/buggy": "-x", "cars/car2/car2a": "-z", "cars/car2/car2b": "-z",
-    "cars/golf/car1": "-x", "cars/jeep/jeep": "-x", "cars/landy/landy": "-x",
+    "cars/golf/car1": "-x", "cars/jeep/jeep": "-x", "cars/landy/landy": "-x", "japan/stoel": "+x",
 }
 
 
