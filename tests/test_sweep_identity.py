@@ -30,22 +30,33 @@ def _write(tmp_path: Path, study: dict) -> Path:
 
 # -- the schema ----------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("bad, where", [
-    ({"colour": "red"}, ": unknown key 'colour'; expected one of ["),
-    ({"rows": [{"name": "a", "colour": 1}]}, ": rows[0]: unknown key 'colour'; expected one of ["),
-    ({"rows": [{"name": "a"}, {"name": "b", "lable": "x", "runn": "y"}]}, ": rows[1]: unknown keys 'lable', 'runn'"),
-    ({"size": "big"}, ": size must be an integer, got 'big'"),
-    ({"rows": [{"name": "a", "paper": {"l1": "low"}}]}, ": rows[0]: paper.l1 must be a number, got 'low'"),
-    ({"rows": [{"name": "a", "overrides": "model/skips=none"}]}, ": rows[0]: overrides must be a list of strings"),
-    ({"rows": [{"label": "no name"}]}, ": rows[0]: 'name' is missing"),
+    ({"colour": "red"}, ":1: unknown key 'colour'; expected one of ["),
+    ({"rows": [{"name": "a", "colour": 1}]}, ":1: rows[0]: unknown key 'colour'; expected one of ["),
+    ({"rows": [{"name": "a"}, {"name": "b", "lable": "x", "runn": "y"}]}, ":1: rows[1]: unknown keys 'lable', 'runn'"),
+    ({"size": "big"}, ":1: size must be an integer, got 'big'"),
+    ({"rows": [{"name": "a", "paper": {"l1": "low"}}]}, ":1: rows[0].paper.l1 must be a number, got 'low'"),
+    ({"rows": [{"name": "a", "overrides": "model/skips=none"}]}, ":1: rows[0].overrides must be a list of strings"),
+    ({"rows": [{"label": "no name"}]}, ":1: rows[0]: 'name' is missing"),
     ({"steps": None}, ": 'steps' is missing"),
-    ({"group_by": "model"}, ": group_by must be one of ['data'] or null, got 'model'"),
+    ({"group_by": "model"}, ":1: group_by must be one of ['data'] or null, got 'model'"),
 ])
 def test_a_bad_key_is_one_error_naming_the_file_and_the_key(tmp_path, bad, where):
-    path = _write(tmp_path, {**STUDY, **bad})
+    path = _write(tmp_path, {**STUDY, **bad})  # JSON: one line
     with pytest.raises(UserError) as err:
         load_study(path)
     assert str(err.value).startswith(f"{path}{where}"), str(err.value)
     assert "\n" not in str(err.value)
+
+
+def test_the_error_names_the_line_of_the_key(tmp_path):
+    path = tmp_path / "lines.yaml"
+    path.write_text("size: 64\nsteps: 10\nrows:\n  - name: a\n  - name: b\n    oracle: maybe\n"
+                    "  - name: c\n\n    colour: red\n")
+    with pytest.raises(UserError, match=rf"^{path}:6: rows\[1\]\.oracle must be true or false, got 'maybe'$"):
+        load_study(path)
+    path.write_text(path.read_text().replace("oracle: maybe", "oracle: true"))
+    with pytest.raises(UserError, match=rf"^{path}:9: rows\[2\]: unknown key 'colour'"):
+        load_study(path)
 
 
 def test_the_schema_keeps_the_defaults_of_the_study_format(tmp_path):

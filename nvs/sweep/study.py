@@ -1,26 +1,25 @@
 """A study file's typed schema: rows, seeds, a scale and the paper's numbers (``sweeps/README.md`` documents it).
 
-The schema is the dataclasses below. ``load_study`` builds them field by field from the YAML mapping, so a key that
-no field declares, a value of the wrong type or a missing required key is one ``UserError`` naming the file and the
-key (``sweeps/x.yaml: rows[2]: unknown key 'colour'; expected one of [...]``). The checks a type cannot express
-(row names that name directories, no sweep overrides, reference rows) follow in ``_check_row``.
+The schema is the dataclasses ``StudyFile`` and ``Row``. ``load_study`` builds them from the YAML mapping through
+``nvs.sweep.schema``, so a key that no field declares, a value of the wrong type or a missing required key is one
+``UserError`` naming the file, the line and the key (``sweeps/x.yaml:14: rows[2]: unknown key 'colour'; expected one
+of [...]``). The checks a type cannot express (row names that name directories, no sweep overrides, reference rows)
+follow in ``_check_row``.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import re
-import types
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Union
+from typing import Any, Literal
 
 from omegaconf import OmegaConf
 
 from nvs.errors import UserError
 from nvs.metric_spec import METRICS
 from nvs.runs import REFERENCE_MODELS  # the one list of the models evaluated without training
+from nvs.sweep.schema import Source, build
 
 # Table layouts: 'metrics' (the paper's tables: metrics, params, costs, paper numbers) or 'cost' (cost against error,
 # the cheapest row within tables.PICK_L1_TOLERANCE of the best non-oracle L1 marked).
@@ -101,112 +100,6 @@ class Study:
         return self.name if default else f"{self.name}_{self.scale}"
 
 
-# -- building the dataclasses from a mapping -------------------------------------------------------------------------
-def _type_text(tp) -> str:
-    origin, args = typing.get_origin(tp), typing.get_args(tp)
-    if tp is bool:
-        return "true or false"
-    if tp in (int, float, str):
-        return {int: "an integer", float: "a number", str: "a string"}[tp]
-    if origin is Literal:
-        return f"one of {list(args)}"
-    if origin is tuple:
-        return f"a list of {_type_text(args[0]).removeprefix('an ').removeprefix('a ')}s"
-    if origin is dict:
-        return f"a mapping of {_type_text(args[1]).removeprefix('an ').removeprefix('a ')}s"
-    if origin in (Union, types.UnionType):
-        return " or ".join("null" if a is type(None) else _type_text(a) for a in args)
-    if dataclasses.is_dataclass(tp):
-        return f"a mapping ({', '.join(f.name for f in dataclasses.fields(tp))})"
-    return str(tp)
-
-
-class _Mismatch(Exception):
-    pass
-
-
-def _convert(tp, value, where: str):
-    """``value`` as type ``tp``; raises _Mismatch when it is not one (UserError for errors deeper inside)."""
-    origin, args = typing.get_origin(tp), typing.get_args(tp)
-    if tp is Any:
-        return value
-    if tp is type(None):
-        if value is None:
-            return None
-        raise _Mismatch
-    if origin in (Union, types.UnionType):
-        for a in args:
-            try:
-                return _convert(a, value, where)
-            except _Mismatch:
-                continue
-        raise _Mismatch
-    if origin is Literal:
-        if value in args:
-            return value
-        raise _Mismatch
-    if tp is bool:  # YAML's true/false only: the string "yes" is not a bool here
-        if isinstance(value, bool):
-            return value
-        raise _Mismatch
-    if tp is int:
-        if isinstance(value, int) and not isinstance(value, bool):
-            return value
-        raise _Mismatch
-    if tp is float:
-        if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return float(value)
-        raise _Mismatch
-    if tp is str:
-        if isinstance(value, str):
-            return value
-        raise _Mismatch
-    if origin is tuple:
-        if not isinstance(value, list):
-            raise _Mismatch
-        return tuple(_field_value(args[0], v, f"{where}[{i}]") for i, v in enumerate(value))
-    if origin is dict:
-        if not isinstance(value, dict):
-            raise _Mismatch
-        return {str(k): _field_value(args[1], v, f"{where}.{k}") for k, v in value.items()}
-    if dataclasses.is_dataclass(tp):
-        if not isinstance(value, dict):
-            raise _Mismatch
-        return build(tp, value, where)
-    raise TypeError(f"unsupported schema type {tp}")
-
-
-def _field_value(tp, value, where: str):
-    try:
-        return _convert(tp, value, where)
-    except _Mismatch:
-        raise UserError(f"{where} must be {_type_text(tp)}, got {value!r}") from None
-
-
-def build(cls, raw: dict, where: str):
-    """An instance of dataclass ``cls`` from ``raw``: unknown keys, missing required keys and wrong types fail.
-
-    ``where`` names the mapping in messages (``sweeps/x.yaml`` or ``sweeps/x.yaml: rows[2]``); a null value means
-    the field's default.
-    """
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    hints = typing.get_type_hints(cls)
-    unknown = [k for k in raw if k not in fields]
-    if unknown:
-        plural = "s" if len(unknown) > 1 else ""
-        raise UserError(f"{where}: unknown key{plural} {', '.join(repr(k) for k in unknown)}; "
-                        f"expected one of {sorted(fields)}")
-    given = {k: v for k, v in raw.items() if v is not None or _accepts_none(hints[k])}
-    for name, f in fields.items():
-        if name not in given and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
-            raise UserError(f"{where}: '{name}' is missing")
-    return cls(**{k: _field_value(hints[k], v, f"{where}: {k}") for k, v in given.items()})
-
-
-def _accepts_none(tp) -> bool:
-    return tp is Any or (typing.get_origin(tp) in (Union, types.UnionType) and type(None) in typing.get_args(tp))
-
-
 # -- the checks a type cannot express --------------------------------------------------------------------------------
 def _check_overrides(where: str, overrides: tuple[str, ...]) -> tuple[str, ...]:
     from hydra.core.override_parser.overrides_parser import OverridesParser
@@ -248,30 +141,31 @@ def load_study(path: str | Path, seeds: list[int] | None = None, size: int | Non
         raise UserError(f"{path}: not a readable study file: {str(err).splitlines()[0]}") from None
     if not isinstance(raw, dict):
         raise UserError(f"{path}: a study file is a mapping (name, seeds, size, steps, rows, ...)")
-    spec: StudyFile = build(StudyFile, raw, str(path))
+    source = Source(path)
+    spec: StudyFile = build(StudyFile, raw, source)
     metrics = spec.metrics or METRICS
     bad = [m for m in metrics if m not in METRICS]
     if bad:
-        raise UserError(f"{path}: unknown metric(s) {bad}; expected some of {list(METRICS)}")
+        raise UserError(f"{source.where(('metrics',))}: unknown metric(s) {bad}; expected some of {list(METRICS)}")
     names, runs = set(), set()
     for i, row in enumerate(spec.rows):
-        where = f"{path}: rows[{i}]"
+        where = source.where(("rows", i))
         _check_row(row, where)
         if row.name in names or row.run in runs:
             raise UserError(f"{where}: row name '{row.name}' / run '{row.run}' used twice in the study")
         names.add(row.name)
         runs.add(row.run)
     if not spec.rows:
-        raise UserError(f"{path}: 'rows' is empty")
+        raise UserError(f"{source.where(('rows',))}: 'rows' is empty")
     file_seeds = list(range(spec.seeds)) if isinstance(spec.seeds, int) else list(spec.seeds)
     chosen = [int(s) for s in (seeds if seeds is not None else file_seeds)]
     if not chosen or len(set(chosen)) != len(chosen):
-        raise UserError(f"{path}: seeds must be distinct and at least one, got {chosen}")
+        raise UserError(f"{source.where(('seeds',))}: seeds must be distinct and at least one, got {chosen}")
     name = spec.name or path.stem
     return Study(
         name=name, path=path, title=spec.title or name, description=spec.description or "",
         paper_source=spec.paper_source or "", seeds=tuple(chosen),
         size=int(size if size is not None else spec.size), steps=int(steps if steps is not None else spec.steps),
         default_size=spec.size, default_steps=spec.steps,
-        overrides=_check_overrides(f"{path}: overrides", spec.overrides),
+        overrides=_check_overrides(source.where(("overrides",)), spec.overrides),
         metrics=tuple(metrics), group_by=spec.group_by, rows=spec.rows, table=spec.table)
