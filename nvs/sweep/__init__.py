@@ -1,9 +1,9 @@
 """The sweep runner: ``python -m nvs.sweep sweeps/<study>.yaml`` runs a study's jobs, then tabulates them.
 
-One module per idea: ``study`` (the typed study-file schema), ``jobs`` (a job, its status, identity and planning),
-``launch`` (Hydra multiruns in a subprocess), ``recorder`` (the Hydra callback inside every job), ``collect`` (one
-record per job, the CSV), ``tables`` (the Markdown tables, orderings against the paper, cost tables) and
-``__main__`` (the command line). Names are also reachable as ``nvs.sweep.<name>``, loaded on first use, so that
+One module per idea: ``study`` (the typed study-file schema, read by ``schema``), ``jobs`` (a job, its status,
+identity and planning), ``launch`` (Hydra multiruns in a subprocess), ``recorder`` (the Hydra callback inside every
+job), ``collect`` (one record per job, the CSV), ``tables`` (the Markdown tables, orderings against the paper, cost
+tables) and ``__main__`` (the command line). Names are also reachable as ``nvs.sweep.<name>``, loaded on first use, so that
 importing ``nvs.sweep.recorder`` inside a training job loads nothing else.
 """
 

@@ -29,7 +29,7 @@ from pathlib import Path
 
 from nvs.errors import UserError
 from nvs.runs import Run
-from nvs.sweep.jobs import Job, plan, prepare_job_dir, to_launch
+from nvs.sweep.jobs import Job, Status, plan, prepare_job_dir, to_launch
 from nvs.sweep.launch import Launch, _cores, _interrupt, launch_row, multirun_command
 from nvs.sweep.study import load_study
 from nvs.sweep.tables import write_results
@@ -112,10 +112,10 @@ def run(argv: list[str] | None = None) -> int:
     if args.figures:
         from nvs.paper_figures import make_figures
 
-        runs = [Run(j.dir, j.row.label, j.data or "", bool(j.row.reference)) for j in jobs if j.status == "done"]
+        runs = [Run(j.dir, j.row.label, j.data or "", bool(j.row.reference)) for j in jobs if j.status == Status.DONE]
         for path in make_figures(runs, Path(args.results), study.results_stem) if runs else []:
             print(f"[sweep] wrote {path}", file=sys.stderr)
-    return 0 if counts.get("done", 0) == len(jobs) else 1
+    return 0 if counts.get(Status.DONE, 0) == len(jobs) else 1
 
 
 def main(argv: list[str] | None = None) -> None:
