@@ -118,17 +118,14 @@ def convert_state(files: dict[str, Path], target: dict[str, torch.Tensor]) -> di
 def convert(paths: list[str], data: str = "chairs", epoch: str | None = None, out: str | None = None,
             overrides: tuple[str, ...] = ()) -> Path:
     """Write the nvs checkpoint; returns its path (default: beside the inputs, ``<epoch>_nvs.ckpt``)."""
-    from hydra import compose, initialize_config_dir
-
     from nvs.atomic import write_bytes
     from nvs.build import build_module
+    from nvs.compose import compose
 
     files = find_files(paths, epoch)
     epoch = files["enc"].name.split("_net_")[0]
-    conf = Path(__file__).resolve().parents[1] / "conf"
-    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-        cfg = compose(config_name="train", overrides=[f"data={data}", "model=nvs", "fidelity=code",
-                                                      f"data.size={SIZE}", "paths.output_dir=.", *overrides])
+    cfg = compose("train", [f"data={data}", "model=nvs", "fidelity=code", f"data.size={SIZE}", "paths.output_dir=.",
+                            *overrides])
     module = build_module(cfg)
     own = {k: v for k, v in module.state_dict().items() if not k.startswith("losses.")}
     weights = convert_state(files, own)

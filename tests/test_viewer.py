@@ -22,7 +22,8 @@ from nvs.errors import UserError
 from nvs.types import Extras
 from nvs.viewer.controls import ObjectControls, SceneControls, build_controls
 from nvs.viewer.images import decode_upload
-from nvs.viewer.load import ViewerProcess, measure
+from nvs.viewer.load import measure
+from nvs.viewer.process import ViewerProcess
 from nvs.viewer.server import check_address
 from nvs.viewer.session import Source, ViewSession
 from tests.conftest import compose_train, fixture_batch
@@ -32,7 +33,7 @@ CHROMIUM = Path("/usr/bin/chromium")
 
 
 def _net(tmp_path, *overrides):
-    cfg = compose_train([f"paths.root_dir={tmp_path}", "loss=[recon]", *overrides])
+    cfg = compose_train([f"paths.root_dir={tmp_path}", "loss=[recon_final]", *overrides])
     cfg.paths.output_dir = str(tmp_path)
     OmegaConf.resolve(cfg)
     torch.manual_seed(0)

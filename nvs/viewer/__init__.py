@@ -9,5 +9,7 @@ paths.py     camera paths for videos (orbit, forward, custom keyframes) inside t
 video.py     frames (view | depth) of a path -> MP4 and GIF
 cloud.py     a view's predicted depth -> coloured points (PLY via nvs.pointcloud)
 server.py    the aiohttp app (page, JSON API) and its loopback-only start-up
+process.py   the viewer in a child process, for the tools and tests that drive it over HTTP
 load.py      ``python -m nvs.viewer.load``: views per second through the HTTP endpoint
+screenshot.py ``python -m nvs.viewer.screenshot``: the README's picture of the page
 """

@@ -11,17 +11,11 @@ server's own model and server times, and the latency of a source switch (encoder
 
 from __future__ import annotations
 
-import collections
 import http.client
 import json
 import os
-import re
 import statistics
-import subprocess
-import sys
-import threading
 import time
-from datetime import datetime, timezone
 from pathlib import Path
 from urllib.parse import urlencode, urlsplit
 
@@ -30,54 +24,9 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from nvs.atomic import write_json
-from nvs.build import device_name, git_sha
 from nvs.errors import UserError, exits_cleanly
-
-_URL = re.compile(r"viewer: (http://\S+)")
-
-
-class ViewerProcess:
-    """``python -m nvs.viewer *args port=0`` in a child process; the context value is its URL (``http://host:port/``).
-
-    Output after the URL line is drained into ``tail`` (the last lines) so the child never blocks on a full pipe.
-    """
-
-    def __init__(self, args: list[str], timeout_s: float = 180.0, cwd: str | Path | None = None):
-        self.args, self.timeout_s, self.cwd = list(args), timeout_s, cwd
-        self.tail: collections.deque[str] = collections.deque(maxlen=50)
-        self.proc: subprocess.Popen | None = None
-
-    def __enter__(self) -> str:
-        cmd = [sys.executable, "-m", "nvs.viewer", *self.args, "port=0"]
-        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=self.cwd)
-        found: list[str] = []
-        ready = threading.Event()
-
-        def drain():
-            for line in self.proc.stdout:
-                self.tail.append(line.rstrip())
-                m = _URL.search(line)
-                if m and not found:
-                    found.append(m.group(1))
-                    ready.set()
-            ready.set()  # the child exited
-
-        threading.Thread(target=drain, daemon=True).start()
-        ready.wait(self.timeout_s)
-        if not found:
-            self.__exit__(None, None, None)
-            raise UserError("the viewer did not start:\n" + "\n".join(self.tail))
-        return found[0]
-
-    def __exit__(self, *exc) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(10)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-
+from nvs.provenance import header
+from nvs.viewer.process import ViewerProcess
 
 def _triangle(i: int, period: int) -> float:
     """0 -> 1 -> 0 over ``period`` steps."""
@@ -142,12 +91,9 @@ def main(cfg: DictConfig) -> None:
     load_before = os.getloadavg()
     with ViewerProcess(overrides) as url:
         result = measure(url, int(cfg.load.requests), int(cfg.load.warmup))
-    report = {
-        "command": "python -m nvs.viewer.load " + " ".join(HydraConfig.get().overrides.task),
-        "git_sha": git_sha(), "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "device": device_name(), "threads": cfg.threads,
-        "loadavg_1min_before": load_before[0], "loadavg_1min_after": os.getloadavg()[0], **result,
-    }
+    report = header("python -m nvs.viewer.load " + " ".join(HydraConfig.get().overrides.task), iso=True,
+                    threads=cfg.threads, loadavg_1min_before=load_before[0],
+                    loadavg_1min_after=os.getloadavg()[0], **result)
     threads = f"_threads{cfg.threads}" if cfg.threads else ""
     out = Path(cfg.load.out or f"results/viewer/load_{result['image_size']}{threads}.json")
     write_json(out, report)

@@ -1,6 +1,6 @@
 """python -m nvs.viewer.screenshot ckpt_path=... [screenshot.out=docs/viewer.png]: a picture of the running viewer.
 
-Starts the viewer like ``nvs.viewer.load`` does, opens it in Debian's headless chromium (``/usr/bin/chromium``)
+Starts the viewer in its own process (``nvs.viewer.process``), opens it in Debian's headless chromium (``/usr/bin/chromium``)
 through Playwright, picks a gallery image, drags across the synthesised view and saves a screenshot of the page.
 """
 
@@ -13,7 +13,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from nvs.errors import UserError, exits_cleanly
-from nvs.viewer.load import ViewerProcess
+from nvs.viewer.process import ViewerProcess
 
 CHROMIUM = Path("/usr/bin/chromium")
 _IDLE = "document.body.dataset.busy === 'false' && +document.body.dataset.views >= {}"
