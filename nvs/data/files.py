@@ -84,18 +84,29 @@ def read_lines(path: str | Path) -> list[tuple[int, str]]:
     return out
 
 
+def _read_records(path: str | Path, width: int, expected: str, what: str, known: set[str] | None = None) -> dict:
+    """Lines of ``width`` whitespace-separated ids -> {record: 1-based line number}, in file order. A wrong width,
+    an id outside ``known``, a duplicated record and an empty file are each one error naming the file and line."""
+    seen: dict = {}
+    for lineno, s in read_lines(path):
+        parts = s.split()
+        if len(parts) != width:
+            raise DataError(path, f"expected {expected}, got {s!r}", lineno)
+        record = parts[0] if width == 1 else tuple(parts)
+        for pid in parts if known is not None else ():
+            if pid not in known:
+                raise DataError(path, f"unknown id {pid!r}", lineno)
+        if record in seen:
+            raise DataError(path, f"duplicated {what} {s!r} (first on line {seen[record]})", lineno)
+        seen[record] = lineno
+    if not seen:
+        raise DataError(path, f"no {what}s: the split is empty")
+    return seen
+
+
 def read_id_lines(path: str | Path) -> dict[str, int]:
     """One id per line -> {id: 1-based line number}, in file order; duplicates and an empty list are errors."""
-    seen: dict[str, int] = {}
-    for lineno, s in read_lines(path):
-        if len(s.split()) != 1:
-            raise DataError(path, f"expected one id per line, got {s!r}", lineno)
-        if s in seen:
-            raise DataError(path, f"duplicated id {s!r} (first on line {seen[s]})", lineno)
-        seen[s] = lineno
-    if not seen:
-        raise DataError(path, "no ids: the split is empty")
-    return seen
+    return _read_records(path, 1, "one id per line", "id")
 
 
 def read_ids(path: str | Path) -> list[str]:
@@ -106,22 +117,7 @@ def read_ids(path: str | Path) -> list[str]:
 def read_pair_lines(path: str | Path, known: set[str] | None = None) -> dict[tuple[str, str], int]:
     """``idA idB`` per line (A = source, B = target) -> {(A, B): line number}. Unknown ids and duplicated pairs are
     errors."""
-    seen: dict[tuple[str, str], int] = {}
-    for lineno, s in read_lines(path):
-        parts = s.split()
-        if len(parts) != 2:
-            raise DataError(path, f"expected 'idA idB', got {s!r}", lineno)
-        pair = (parts[0], parts[1])
-        if known is not None:
-            for pid in pair:
-                if pid not in known:
-                    raise DataError(path, f"unknown id {pid!r}", lineno)
-        if pair in seen:
-            raise DataError(path, f"duplicated pair {s!r} (first on line {seen[pair]})", lineno)
-        seen[pair] = lineno
-    if not seen:
-        raise DataError(path, "no pairs: the split is empty")
-    return seen
+    return _read_records(path, 2, "'idA idB'", "pair", known)
 
 
 def read_pairs(path: str | Path, known: set[str] | None = None) -> list[tuple[str, str]]:
