@@ -9,10 +9,8 @@ import imageio_ffmpeg
 import numpy as np
 import pytest
 import torch
-from omegaconf import OmegaConf
 from PIL import Image
 
-from nvs.build import build_module
 from nvs.errors import UserError
 from nvs.pointcloud import depth_to_points, read_ply, write_ply
 from nvs.viewer.controls import ObjectControls, SceneControls, check_values
@@ -20,6 +18,7 @@ from nvs.viewer.paths import camera_path
 from nvs.viewer.session import Source, ViewSession
 from nvs.viewer.video import compose_frames, render_views, write_video
 from tests.conftest import compose_train, fixture_batch
+from tests.viewer_helpers import built_net, one_step_checkpoint
 
 OBJECTS = ObjectControls(40, (0.0, 0.0, 2.0))
 SCENES = SceneControls((-0.4, 0.2), (0.0, 1.5), 0.02)
@@ -87,11 +86,7 @@ def test_bad_custom_paths_are_one_clear_error(tmp_path):
 
 # -- frames, files -------------------------------------------------------------------------------------------------
 def _session(tmp_path) -> ViewSession:
-    cfg = compose_train([f"paths.root_dir={tmp_path}", "loss=[recon]"])
-    cfg.paths.output_dir = str(tmp_path)
-    OmegaConf.resolve(cfg)
-    torch.manual_seed(0)
-    net = build_module(cfg).net.eval()
+    net = built_net(tmp_path)
     batch = fixture_batch(B=1)
     gallery = [Source("g0", "m_40_10", (batch["src"][0] * 255).to(torch.uint8), {"azimuth": 40.0, "elevation": 10.0})]
     return ViewSession(net, 64, batch["K"][0], batch["pivot"][0], OBJECTS, gallery, torch.bfloat16)
@@ -137,17 +132,7 @@ def test_point_cloud_is_the_depth_lifted_through_K_and_round_trips_through_ply(t
 # -- the CLIs on a trained checkpoint ------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def checkpoint(objects_root, tmp_path_factory):
-    from nvs.train import run
-
-    out = tmp_path_factory.mktemp("video_run")
-    cfg = compose_train([f"data.root={objects_root}", f"paths.log_dir={out}", "trainer.max_steps=1",
-                         "trainer.val_check_interval=1", "trainer.limit_val_batches=1", "data.loader.batch_size=2",
-                         "data.loader.eval_batch_size=2", "loss=[recon]", "test=false",
-                         "trainer.enable_progress_bar=false", "logger=[]"])
-    cfg.paths.output_dir = str(out)
-    OmegaConf.resolve(cfg)
-    run(cfg, out)
-    return out / "checkpoints" / "last.ckpt"
+    return one_step_checkpoint(objects_root, tmp_path_factory.mktemp("video_run"), "logger=[]")
 
 
 def _cli_cfg(name: str, tmp_path, ckpt, *overrides):

@@ -11,10 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from omegaconf import OmegaConf
 from PIL import Image
 
-from nvs.build import build_module
 from nvs.data.datamodule import build_datamodule
 from nvs.data.kitti import ScenesFormat
 from nvs.data.shapenet import ObjectsFormat
@@ -26,18 +24,14 @@ from nvs.viewer.load import measure
 from nvs.viewer.process import ViewerProcess
 from nvs.viewer.server import check_address
 from nvs.viewer.session import Source, ViewSession
-from tests.conftest import compose_train, fixture_batch
+from tests.conftest import fixture_batch
+from tests.viewer_helpers import built_net, one_step_checkpoint
 
 REPO = Path(__file__).resolve().parents[1]
 CHROMIUM = Path("/usr/bin/chromium")
 
 
-def _net(tmp_path, *overrides):
-    cfg = compose_train([f"paths.root_dir={tmp_path}", "loss=[recon_final]", *overrides])
-    cfg.paths.output_dir = str(tmp_path)
-    OmegaConf.resolve(cfg)
-    torch.manual_seed(0)
-    return build_module(cfg).net.eval()
+_net = built_net
 
 
 def _png(img: np.ndarray) -> bytes:
@@ -187,17 +181,8 @@ def test_loopback_only_and_a_taken_port_is_one_clear_error(tmp_path):
 @pytest.fixture(scope="module")
 def viewer_url(objects_root, tmp_path_factory):
     """A checkpoint trained for one step in this test, served by ``python -m nvs.viewer`` on a free port."""
-    from nvs.train import run
-
     out = tmp_path_factory.mktemp("viewer_run")
-    cfg = compose_train([f"data.root={objects_root}", f"paths.log_dir={out}", "trainer.max_steps=1",
-                         "trainer.val_check_interval=1", "trainer.limit_val_batches=1", "data.loader.batch_size=2",
-                         "data.loader.eval_batch_size=2", "loss=[recon]", "test=false",
-                         "trainer.enable_progress_bar=false", "channels_last=true"])
-    cfg.paths.output_dir = str(out)
-    OmegaConf.resolve(cfg)
-    run(cfg, out)
-    ckpt = out / "checkpoints" / "last.ckpt"
+    ckpt = one_step_checkpoint(objects_root, out, "channels_last=true")
     with ViewerProcess([f"ckpt_path={ckpt}", f"hydra.run.dir={out / 'viewer'}", "gallery=3"], cwd=REPO) as url:
         yield url
 

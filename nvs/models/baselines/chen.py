@@ -6,7 +6,6 @@ from collections.abc import Callable
 
 import torch
 import torch.nn as nn
-import torch.nn.functional as F
 
 from nvs.geometry import BORDER_TOLERANCE, about_pivot, project_to_source, sample_at
 from nvs.models.baselines import BaselineOutputs
