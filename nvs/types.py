@@ -7,8 +7,7 @@ right, y down, z forward; pixel centres at integer coordinates). ``T_tgt_src`` m
 target camera. Depth is z along the optical axis in pose units; 0 in a ground truth means "no data".
 """
 
-from __future__ import annotations
-
+# No ``from __future__ import annotations``: TypedDict reads NotRequired only from evaluated annotations.
 from typing import NotRequired, TypedDict
 
 from torch import Tensor
@@ -32,6 +31,7 @@ class Batch(TypedDict):
     depth_tgt: NotRequired[Depth]  # the same for the target view
     id_src: NotRequired[list[str]]  # pair ids (image stems)
     id_tgt: NotRequired[list[str]]
+    index: NotRequired[Tensor]  # (B,) long: each pair's position in its split (evaluation rows are gathered by it)
 
 
 class Extras:
@@ -46,18 +46,19 @@ class Extras:
 RGB_BRANCHES = "rgb_branches"
 
 
-class Outputs(TypedDict, total=False):
-    """What a network's ``forward(batch, needs)`` returns; ``rgb`` and ``rgb_scales`` always, the rest when the
-    model has them (``depth``) or a loss asked for them (the ``Extras``)."""
+class Outputs(TypedDict):
+    """What a network's ``forward(batch, needs) -> outputs`` returns: ``rgb`` and ``rgb_scales`` always, the rest when
+    the model has them (``depth``) or a loss asked for them (the ``Extras``)."""
 
     rgb: Image  # final prediction
-    rgb_scales: list[Tensor]  # (B,3,h,w) in [-1,1], coarse to fine, last = full resolution
-    depth: Depth  # predicted target depth, > 0
-    depth_from_tgt: Depth  # Extras.DEPTH_FROM_TGT
-    depth_src: Depth  # Extras.DEPTH_SRC
-    warped_src: Image  # Extras.WARPED_SRC
-    warp_valid: Tensor  # (B,1,H,W) in {0,1}: the warped pixel's source point is in front and inside the image
-    rgb_branches: dict[str, Image]  # RGB_BRANCHES
+    rgb_scales: list[Tensor]  # (B,3,h,w) in [-1,1], coarse to fine, last = full resolution; the network's n_scales
+    depth: NotRequired[Depth]  # predicted target depth, > 0
+    depth_from_tgt: NotRequired[Depth]  # Extras.DEPTH_FROM_TGT
+    depth_src: NotRequired[Depth]  # Extras.DEPTH_SRC
+    warped_src: NotRequired[Image]  # Extras.WARPED_SRC
+    warp_valid: NotRequired[Tensor]  # (B,1,H,W) in {0,1}: the warped pixel's source point is in front, in the image
+    rgb_branches: NotRequired[dict[str, Image]]  # RGB_BRANCHES
+    confidence: NotRequired[Tensor]  # (B,2,H,W) softmax blending weights (flow, pixel) of Sun et al.'s model
 
 
 def to_model_range(img: Tensor) -> Tensor:
