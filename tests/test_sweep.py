@@ -575,24 +575,71 @@ def test_sigterm_to_the_sweep_stops_its_running_job(tmp_path):
         os.kill(child, 0)
 
 
-def test_orderings_count_the_pairs_ranked_as_in_the_paper():
-    def row(name, l1, paper_l1, ssim=None, paper_ssim=None):
-        paper = {"l1": paper_l1} | ({"ssim_paper": paper_ssim} if paper_ssim is not None else {})
-        return {"row": name, "l1": (l1, None), "ssim_paper": (ssim, None), "paper": paper}
+def _per_image(tmp_path, name, values, views=None):
+    """A job directory whose test_per_image.csv holds l1 = values[k] and ssim_paper = 1 - values[k] for pair k;
+    pair k shows object model m<k // 3> (views '<model>_<az>_0') unless ``views`` gives the target ids."""
+    d = tmp_path / name
+    d.mkdir()
+    lines = ["index,id_src,id_tgt,l1,ssim_paper"]
+    for k, v in enumerate(values):
+        tgt = views[k] if views else f"m{k // 3}_{20 * (k % 3)}_0"
+        lines.append(f"{k},{tgt}s,{tgt},{v},{'' if v is None else 1 - v}")
+    (d / "test_per_image.csv").write_text("\n".join(lines).replace(",None,", ",,") + "\n")
+    return d
 
-    rows = [row("a", 0.30, 0.10, 0.5, 0.80), row("b", 0.20, 0.08, 0.7, 0.90), row("c", 0.25, 0.06, 0.6, 0.95),
-            {"row": "copy", "l1": (0.5, None), "ssim_paper": (0.1, None), "paper": {}}]
+
+def _ordered_row(name, dirs, paper_l1, paper_ssim=None):
+    from nvs.sweep.bootstrap import seed_mean
+
+    means = seed_mean(dirs)
+    l1 = sum(v["l1"] for v in means.values()) / len(means) if means else 0.5
+    paper = {"l1": paper_l1} | ({"ssim_paper": paper_ssim} if paper_ssim is not None else {})
+    return {"row": name, "l1": (l1, None), "ssim_paper": (1 - l1, None), "paper": paper, "dirs": dirs}
+
+
+def test_orderings_are_decided_by_a_paired_bootstrap_over_test_models(tmp_path):
+    n = 30  # 10 test models x 3 pairs
+    a = _per_image(tmp_path, "a", [0.30 + 0.01 * (k % 5) for k in range(n)])
+    b = _per_image(tmp_path, "b", [0.20 + 0.01 * (k % 5) for k in range(n)])
+    # c is b +- 0.05 by model: the same mean, a spread that holds zero
+    c = _per_image(tmp_path, "c", [0.20 + 0.01 * (k % 5) + (0.05 if (k // 3) % 2 else -0.05) for k in range(n)])
+    rows = [_ordered_row("a", [a], 0.10, 0.80), _ordered_row("b", [b], 0.08, 0.90), _ordered_row("c", [c], 0.06, 0.95),
+            {"row": "copy", "l1": (0.5, None), "ssim_paper": (0.1, None), "paper": {}, "dirs": []}]
     lines = sweep.orderings(rows, ["l1", "ssim_paper"])
-    l1_line = next(line for line in lines if line.startswith("- **L1**"))
-    # paper (best first) c, b, a; ours b, c, a: pairs (c,b) swapped, (c,a) and (b,a) kept; the reference is left out
-    assert "paper: c > b > a; ours: b > c > a; 2/3 pairs in the paper's order; swapped: c / b" in l1_line
+    assert lines == sweep.orderings(rows, ["l1", "ssim_paper"])  # seeded: the same files give the same text
+    assert "paired bootstrap over test models" in lines[0] and "2000 resamples" in lines[0]
+    l1_at = next(i for i, line in enumerate(lines) if line.startswith("- **L1**"))
+    assert "paper: c > b > a;" in lines[l1_at] and "of 3 pairs 2 agree, 0 swap, 1 unresolved" in lines[l1_at]
+    pairs = {ln.split(":")[0].strip("- "): ln for ln in lines[l1_at + 1:l1_at + 4]}
+    assert pairs["c / b"].startswith("  - c / b: unresolved, Δ +0.00000 [-0.")
+    assert "over 10 test models (30 pairs)" in pairs["c / b"]
+    assert pairs["c / a"].startswith("  - c / a: agree, Δ -0.10000 [-0.1") and "b / a: agree, Δ -0.10000" in pairs["b / a"]
+    # SSIM: higher is better; the same verdicts (the CSV's ssim_paper is 1 - l1)
     ssim_line = next(line for line in lines if line.startswith("- **SSIM (paper)**"))
-    assert "ours: b > c > a; 2/3 pairs" in ssim_line
+    assert "of 3 pairs 2 agree, 0 swap, 1 unresolved" in ssim_line
+    # c clearly worse than b: a swap, with an interval that excludes zero
+    worse = _per_image(tmp_path, "worse", [0.25 + 0.01 * (k % 5) for k in range(n)])
+    lines = sweep.orderings([_ordered_row("b", [b], 0.08), _ordered_row("c", [worse], 0.06)], ["l1"])
+    assert "0 agree, 1 swap, 0 unresolved" in lines[2] and "c / b: swap, Δ +0.05000 [+0.05000, +0.05000]" in lines[3]
     assert sweep.orderings(rows[:1], ["l1"]) == []
-    # within 0.5% of each other, or within the seeds' spread: neither agreeing nor swapped
-    close = [row("a", 0.2000, 0.10), row("b", 0.2009, 0.08)]
-    assert "0/1 pairs in the paper's order, 1 tied (ours: b / a)" in sweep.orderings(close, ["l1"])[2]
-    spread = [row("a", 0.20, 0.10) | {"l1": (0.20, 0.02)}, row("b", 0.23, 0.08) | {"l1": (0.23, 0.02)}]
-    assert "1 tied" in sweep.orderings(spread, ["l1"])[2]
-    apart = [row("a", 0.20, 0.10) | {"l1": (0.20, 0.01)}, row("b", 0.23, 0.08) | {"l1": (0.23, 0.01)}]
-    assert "swapped: b / a" in sweep.orderings(apart, ["l1"])[2]
+
+
+def test_the_bootstrap_averages_seeds_groups_scenes_by_sequence_and_names_missing_results(tmp_path):
+    from nvs.sweep.bootstrap import group_of, paired_gap, seed_mean
+
+    assert group_of("1a2b_c3_340_20") == ("models", "1a2b_c3") and group_of("03_000120") == ("sequences", "03")
+    s0 = _per_image(tmp_path, "s0", [0.2, 0.4, None])
+    s1 = _per_image(tmp_path, "s1", [0.4, 0.4, 0.6])
+    mean = seed_mean([s0, s1])
+    assert mean["m0_0_0s", "m0_0_0"]["l1"] == pytest.approx(0.3) and mean["m0_40_0s", "m0_40_0"]["l1"] == 0.6
+    views = [f"{s:02d}_{f:06d}" for s in range(4) for f in range(5)]
+    x = seed_mean([_per_image(tmp_path, "x", [0.1 * (k % 4) for k in range(20)], views)])
+    y = seed_mean([_per_image(tmp_path, "y", [0.1 * (k % 4) + 0.01 for k in range(20)], views)])
+    gap = paired_gap(x, y, "l1")
+    assert gap.unit == "sequences" and (gap.n_groups, gap.n_pairs) == (4, 20)
+    assert gap.diff == pytest.approx(-0.01) and gap.lo == pytest.approx(-0.01) and gap.hi == pytest.approx(-0.01)
+    lines = sweep.orderings([_ordered_row("p", [s1], 0.1), {"row": "q", "l1": (0.3, None), "ssim_paper": (0, None),
+                                                            "paper": {"l1": 0.2}, "dirs": []}], ["l1"])
+    assert "p / q: unresolved, no per-image results" in lines[3]
+    one = paired_gap(seed_mean([s1]), seed_mean([s0]), "l1")
+    assert one.lo is None and "one test model" in one.why

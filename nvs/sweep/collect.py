@@ -75,6 +75,7 @@ def collect(jobs: list[Job]) -> list[dict]:
             "git_sha": m.get("git_sha"), "run_dir": shown_path(j.dir),
             "overrides": " ".join(_read_overrides(j.dir)) if j.status == Status.DONE else "",
             **{f"paper_{k}": j.row.paper.get(k) for k in METRICS},
+            "dir": j.dir,  # not a CSV column: where the tables read the job's per-image results
         })
     return records
 
@@ -118,7 +119,7 @@ def summarize(study: Study, records: list[dict]) -> list[dict]:
         done = [r for r in recs if r["status"] == Status.DONE]
         s = {"row": row.name, "label": row.label, "kind": row.kind, "n_done": len(done), "n_jobs": len(recs),
              "data": next((r["data"] for r in recs if r["data"]), row.data), "paper": row.paper,
-             "oracle": row.oracle, "notes": _notes(recs)}
+             "oracle": row.oracle, "notes": _notes(recs), "dirs": [r["dir"] for r in done if r.get("dir")]}
         for k in (*METRICS, "params", "train_wall_s", *COSTS, *SKIP_FRACTIONS):
             s[k] = mean_std([_num(r[k]) for r in done])
         out.append(s)

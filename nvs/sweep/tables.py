@@ -1,5 +1,5 @@
 """The study's Markdown: a provenance header, per-dataset tables (the paper's layout or cost against error), and
-orderings of our rows against the paper's."""
+orderings of our rows against the paper's, each decided by a paired bootstrap over test models."""
 
 from __future__ import annotations
 
@@ -9,14 +9,13 @@ from pathlib import Path
 from nvs.atomic import write_text
 from nvs.metric_spec import IMAGE_METRICS, SPECS
 from nvs.provenance import git_sha, utc_now
+from nvs.sweep.bootstrap import LEVEL, RESAMPLES, Gap, paired_gap, seed_mean, verdict
 from nvs.sweep.collect import SKIP_LEVELS, collect, render_csv, summarize
 from nvs.sweep.jobs import Job
 from nvs.sweep.study import Study
 
 PICK_L1_TOLERANCE = 0.01
 PICK_COST = "eval_forward_ms_per_image"
-# Orderings: two of our means closer than this fraction of the larger are a tie (one seed gives no spread).
-ORDER_TIE = 0.005
 
 
 def _fmt(mean: float | None, std: float | None, decimals: int) -> str:
@@ -116,38 +115,60 @@ def _metrics_tables(groups: dict[str | None, list[dict]], present: list[str], pa
 def orderings(rows: list[dict], metrics: list[str]) -> list[str]:
     """Markdown lines comparing the paper's ranking of a table's rows with ours, per metric.
 
-    Only rows with both a paper number and a measured mean take part. A pair of rows agrees when ours orders it the
-    way the paper does (pairs the paper ties are left out). Ours is a tie when the two means differ by less than
-    ORDER_TIE of the larger one or, with seeds, less than the sum of their standard deviations: such a pair is
-    counted neither way. The lines list both rankings (best first), the agreeing pairs, the ties and the swaps.
+    Only rows with both a paper number and a measured mean take part; pairs the paper ties are left out. Each pair
+    (A, B), A the paper's better row, is decided by a paired bootstrap over test models on the pairs both rows were
+    tested on (``nvs.sweep.bootstrap``; rows carry their finished job directories in ``dirs``): agree when the 95%
+    interval of ours(A) - ours(B) lies on the paper's side of zero, swap when it lies on the other side, unresolved
+    when it holds zero (or a row has no per-image results). One line per metric with both rankings (best first) and
+    the counts, then one line per pair with its difference and interval.
     """
-    lines = []
+    lines: list[str] = []
+    per_image: dict[str, dict] = {}
     for m in metrics:
         ranked = [r for r in rows if m in r["paper"] and r[m][0] is not None]
         if len(ranked) < 2:
             continue
-        sign = -1.0 if SPECS[m].higher_is_better else 1.0
+        higher = SPECS[m].higher_is_better
+        sign = -1.0 if higher else 1.0
         paper = sorted(ranked, key=lambda r: sign * r["paper"][m])
         ours = sorted(ranked, key=lambda r: sign * r[m][0])
-        agree, total, swapped, tied = 0, 0, [], []
+        counts = collections.Counter()
+        details = []
         for i, a in enumerate(paper):
             for b in paper[i + 1:]:
                 if a["paper"][m] == b["paper"][m]:
                     continue
-                total += 1
-                (ma, sa), (mb, sb) = a[m], b[m]
-                if abs(ma - mb) < max(ORDER_TIE * max(abs(ma), abs(mb)), (sa or 0.0) + (sb or 0.0)):
-                    tied.append(f"{a['row']} / {b['row']}")
-                elif sign * (ma - mb) < 0:
-                    agree += 1
-                else:
-                    swapped.append(f"{a['row']} / {b['row']}")
-        line = (f"- **{SPECS[m].label}** (best first) paper: {' > '.join(r['row'] for r in paper)}; "
-                f"ours: {' > '.join(r['row'] for r in ours)}; {agree}/{total} pairs in the paper's order")
-        line += f", {len(tied)} tied (ours: {', '.join(tied)})" if tied else ""
-        lines.append(line + (f"; swapped: {', '.join(swapped)}" if swapped else ""))
-    return ["Orderings against the paper:", "", *lines, ""] if lines else []
+                for r in (a, b):
+                    if r["row"] not in per_image:
+                        per_image[r["row"]] = seed_mean(list(r.get("dirs") or []))
+                gap = paired_gap(per_image[a["row"]], per_image[b["row"]], m)
+                verdict_ = verdict(gap, higher)
+                counts[verdict_] += 1
+                details.append(f"  - {a['row']} / {b['row']}: {verdict_}, {_gap_text(gap, SPECS[m].decimals)}")
+        total = sum(counts.values())
+        lines.append(f"- **{SPECS[m].label}** (best first) paper: {' > '.join(r['row'] for r in paper)}; "
+                     f"ours: {' > '.join(r['row'] for r in ours)}; of {total} pairs {counts['agree']} agree, "
+                     f"{counts['swap']} swap, {counts['unresolved']} unresolved")
+        lines += details
+    if not lines:
+        return []
+    head = (f"Orderings against the paper. For each pair A / B (A the paper's better row), Δ = ours(A) − ours(B) "
+            f"on the test pairs both were tested on, with its {100 * LEVEL:g}% interval from a paired bootstrap over "
+            f"test models (objects) or sequences (scenes), {RESAMPLES} resamples, seeded; rows with several seeds "
+            "use each pair's mean over seeds. **agree**: the interval is on the paper's side of zero; **swap**: on "
+            "the other side; **unresolved**: it holds zero.")
+    return [head, "", *lines, ""]
 
+
+def _gap_text(gap: Gap, decimals: int) -> str:
+    if gap.diff is None:
+        return gap.why
+    d = decimals + 1
+    text = f"Δ {gap.diff:+.{d}f}"
+    if gap.lo is not None:
+        text += f" [{gap.lo:+.{d}f}, {gap.hi:+.{d}f}]"
+    text += f" over {gap.n_groups} test {gap.unit} ({gap.n_pairs} pairs)"
+    return text + (f"; {gap.why}" if gap.why else "")
 
 
 def pick_cheapest(rows: list[dict], cost: str = PICK_COST,
