@@ -643,3 +643,63 @@ def test_the_bootstrap_averages_seeds_groups_scenes_by_sequence_and_names_missin
     assert "p / q: unresolved, no per-image results" in lines[3]
     one = paired_gap(seed_mean([s1]), seed_mean([s0]), "l1")
     assert one.lo is None and "one test model" in one.why
+
+
+# -- committed job files --------------------------------------------------------------------------------------------
+def test_exported_jobs_rebuild_the_tables_on_a_fresh_clone(fabricated, tmp_path):
+    study, root = fabricated
+    full0 = root / "full_s0"
+    (full0 / "checkpoints").mkdir()
+    (full0 / "checkpoints" / "last.ckpt").write_bytes(b"weights")
+    (full0 / "csv").mkdir()
+    (full0 / "csv" / "metrics.csv").write_text("step,val/l1\n10,0.5\n")
+    (full0 / "test_per_image.csv").write_text("index,id_src,id_tgt,l1\n0,m0_0_0,m0_20_0,0.1\n")
+    results = tmp_path / "results"
+    args = [str(study.path), "--results", str(results)]
+    assert sweep.run([*args, "--collect-only", str(root), "--export-jobs"]) == 1  # chen s1 failed, noskip s1 missing
+    exported = results / "jobs" / study.scale
+    assert sorted(p.name for p in exported.iterdir()) == ["chen_s0", "copy_s0", "full_s0", "full_s1", "noskip_s0"]
+    files = sorted(p.relative_to(exported / "full_s0").as_posix() for p in (exported / "full_s0").rglob("*")
+                   if p.is_file())
+    assert files == [".hydra/overrides.yaml", "csv/metrics.csv", "metrics.json", "sweep_job.json",
+                     "test_per_image.csv"]  # never a checkpoint
+    first_csv, first_md = (results / "fab.csv").read_text(), (results / "fab.md").read_text()
+    assert f"{exported}/full_s0" in first_csv  # the tables read the committed copies, as a fresh clone will
+
+    # A fresh clone: no runs directory at all, only the committed files.
+    import shutil
+
+    shutil.rmtree(root)
+    fresh = tmp_path / "fresh"
+    assert sweep.run([*args, "--collect-only", "--runs", str(tmp_path / "no_runs")]) == 1
+
+    def done(text):  # every finished job's line (unfinished ones name this machine's run directory)
+        return [ln for ln in text.splitlines() if ",done," in ln]
+
+    assert len(done(first_csv)) == 5 and done((results / "fab.csv").read_text()) == done(first_csv)
+    lines = {ln.split("|")[1].strip(): ln for ln in (results / "fab.md").read_text().splitlines() if ln.startswith("| ")}
+    first = {ln.split("|")[1].strip(): ln for ln in first_md.splitlines() if ln.startswith("| ")}
+    assert lines["Full model"] == first["Full model"] and lines["copy (reference)"] == first["copy (reference)"]
+    # A job the runner would launch: exported jobs are done, the failed and the missing one are not.
+    jobs = {(j.row.name, j.seed): j for j in sweep.plan(study, fresh, exported=exported)}
+    assert jobs["full", 0].status == "done" and jobs["full", 0].dir == exported / "full_s0"
+    assert jobs["chen", 1].status == "missing" and jobs["noskip", 1].status == "missing"
+    assert {(j.row.name, j.seed) for j in sweep.to_launch(list(jobs.values()))} == {("chen", 1), ("noskip", 1)}
+    # The same staleness rule as in runs/: a changed config makes committed results stale, so they are not used.
+    changed = _study(tmp_path, overrides=["trainer.enable_progress_bar=false", "optim.lr=0.001"])
+    jobs = {(j.row.name, j.seed): j for j in sweep.plan(changed, fresh, exported=exported)}
+    assert jobs["full", 0].status == "missing" and jobs["copy", 0].status == "done"
+
+
+def test_a_result_in_runs_is_preferred_and_a_new_export_replaces_the_old(fabricated, tmp_path):
+    study, root = fabricated
+    results = tmp_path / "results"
+    assert sweep.run([str(study.path), "--results", str(results), "--collect-only", str(root), "--export-jobs"]) == 1
+    exported = results / "jobs" / study.scale
+    metrics = json.loads((root / "full_s0" / "metrics.json").read_text())
+    (root / "full_s0" / "metrics.json").write_text(json.dumps(metrics | {"test": metrics["test"] | {"l1": 0.05}}))
+    jobs = {(j.row.name, j.seed): j for j in sweep.plan(study, root, exported=exported)}
+    assert jobs["full", 0].dir == root / "full_s0"
+    assert sweep.run([str(study.path), "--results", str(results), "--collect-only", str(root), "--export-jobs"]) == 1
+    assert json.loads((exported / "full_s0" / "metrics.json").read_text())["test"]["l1"] == 0.05
+    assert not [p for p in exported.iterdir() if p.name.startswith(".")]  # no half-written export left behind

@@ -29,6 +29,7 @@ from pathlib import Path
 
 from nvs.errors import UserError
 from nvs.runs import Run
+from nvs.sweep.export import export_jobs, export_root
 from nvs.sweep.jobs import Job, Status, plan, prepare_job_dir, to_launch
 from nvs.sweep.launch import Launch, _cores, _interrupt, launch_row, multirun_command
 from nvs.sweep.study import load_study
@@ -49,8 +50,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, help="torch threads per job (default: cores // jobs)")
     p.add_argument("--runs", default="runs/sweeps", help="sweep root; jobs go to <runs>/<size>px_<steps>steps/")
     p.add_argument("--results", default="results", help="where <study>.csv and <study>.md are written")
-    p.add_argument("--collect-only", metavar="DIR", help="tabulate the jobs under DIR (a <runs>/<scale> directory) "
-                   "without launching anything")
+    p.add_argument("--collect-only", metavar="DIR", nargs="?", const="", help="tabulate without launching anything: "
+                   "the jobs under DIR (a <runs>/<scale> directory; default: the --runs one) and the committed ones "
+                   "in <results>/jobs/<scale>")
+    p.add_argument("--export-jobs", action="store_true", help="copy every finished job's small files (never "
+                   "checkpoints) to <results>/jobs/<scale>/, where later runs and fresh clones find them")
     p.add_argument("--dry-run", action="store_true", help="print the plan and the commands; launch and write nothing")
     p.add_argument("--skip-failed", action="store_true", help="do not retry jobs that failed before")
     p.add_argument("--force", action="store_true", help="re-run every job (old directories go to <root>/.stale)")
@@ -77,14 +81,17 @@ def run(argv: list[str] | None = None) -> int:
     study = load_study(args.study, seeds=seeds, size=args.size, steps=args.steps)
     extra = tuple(args.overrides)
     root = Path(args.collect_only) if args.collect_only else Path(args.runs) / study.scale
+    # Committed jobs count as finished, except under --force (which re-runs everything into --runs).
+    exported = None if args.force else export_root(args.results, study.scale)
     if args.collect_only and not root.is_dir():
         raise UserError(f"--collect-only {root}: no such directory")
     if not args.dry_run:  # before any job runs: the tables must have somewhere to go
         from nvs.run_files import check_writable  # pandas: only when something is written
 
         check_writable(args.results)
-    jobs = plan(study, root, extra)
-    launching = [] if args.collect_only else to_launch(jobs, retry_failed=not args.skip_failed, force=args.force)
+    jobs = plan(study, root, extra, exported)
+    launching = [] if args.collect_only is not None else to_launch(jobs, retry_failed=not args.skip_failed,
+                                                                   force=args.force)
     _print_plan(jobs, launching)
     if args.dry_run:
         launch = Launch.local(args.jobs, args.threads, extra)
@@ -104,7 +111,14 @@ def run(argv: list[str] | None = None) -> int:
             for j in row_jobs:
                 prepare_job_dir(j, root, force=args.force)
             launch_row(study, row_jobs, root, launch, extra)
-        jobs = plan(study, root, extra)
+        jobs = plan(study, root, extra, exported)
+    if args.export_jobs:
+        dest = export_root(args.results, study.scale)
+        written = {p.name for p in export_jobs(jobs, dest)}
+        print(f"[sweep] exported {len(written)} finished job(s) to {dest}", file=sys.stderr)
+        for j in jobs:  # the tables read the committed copies, as a fresh clone will
+            if j.dir.name in written:
+                j.dir = dest / j.dir.name
     csv_path, md_path = write_results(study, jobs, args.results, command)
     counts = collections.Counter(j.status for j in jobs)
     print(f"[sweep] wrote {csv_path} and {md_path} ("
@@ -112,7 +126,14 @@ def run(argv: list[str] | None = None) -> int:
     if args.figures:
         from nvs.paper_figures import make_figures
 
-        runs = [Run(j.dir, j.row.label, j.data or "", bool(j.row.reference)) for j in jobs if j.status == Status.DONE]
+        # Drawing needs a trained job's checkpoint: committed jobs without their run directory are left out.
+        dirs = [(j, root / j.dir.name if (root / j.dir.name / "checkpoints").is_dir() else j.dir)
+                for j in jobs if j.status == Status.DONE]
+        runs = [Run(d, j.row.label, j.data or "", bool(j.row.reference)) for j, d in dirs
+                if j.row.reference or (d / "checkpoints").is_dir()]
+        if len(runs) < len(dirs):
+            print(f"[sweep] figures: {len(dirs) - len(runs)} finished job(s) have no checkpoint here "
+                  "(committed files only); drawn without them", file=sys.stderr)
         for path in make_figures(runs, Path(args.results), study.results_stem) if runs else []:
             print(f"[sweep] wrote {path}", file=sys.stderr)
     return 0 if counts.get(Status.DONE, 0) == len(jobs) else 1

@@ -233,8 +233,12 @@ def refresh(job: Job) -> Job:
     return job
 
 
-def plan(study: Study, root: str | Path, extra: tuple[str, ...] = ()) -> list[Job]:
-    """Every job of the study with its status in ``root``; reads the disk, writes nothing."""
+def plan(study: Study, root: str | Path, extra: tuple[str, ...] = (), exported: str | Path | None = None) -> list[Job]:
+    """Every job of the study with its status in ``root``; reads the disk, writes nothing.
+
+    ``exported``: a directory of committed job files (``nvs.sweep.export``). A job that is not done in ``root`` but
+    done there (the same key and staleness rule) is done, read from there.
+    """
     root = Path(root)
     jobs = []
     for row in study.rows:
@@ -244,7 +248,12 @@ def plan(study: Study, root: str | Path, extra: tuple[str, ...] = ()) -> list[Jo
             job = Job(study=study.name, row=row, seed=seed, dir=root / f"{row.run}_s{seed}", overrides=overrides,
                       key=job_key(row.kind, overrides, seed), fingerprint=config_fingerprint(cfg),
                       data=str(cfg.data.get("name") or row.data))
-            jobs.append(refresh(job))
+            refresh(job)
+            if job.status != Status.DONE and exported is not None:
+                there = Path(exported) / job.dir.name
+                if job_status(there, job.key, job.fingerprint)[0] == Status.DONE:
+                    job.dir, job.status, job.error = there, Status.DONE, ""
+            jobs.append(job)
     return jobs
 
 
