@@ -305,3 +305,14 @@ def test_training_under_stress_counts_nonfinite_steps():
     run = train_under_stress(module, lambda i: batch, steps=3)
     # Anomaly detection stops the NaN backward of step 1 and names it; step 0 was clean.
     assert run.losses == [0.0] and run.error.startswith("step 1:") and "nan" in run.error.lower()
+
+
+@pytest.mark.slow
+def test_determinism_section_runs_the_training_command(tmp_path):
+    """Three `python -m nvs.train` runs: the same seed agrees bitwise, the control seed differs."""
+    from nvs.stress.determinism import determinism_section
+
+    (same, control) = determinism_section(str(tmp_path))
+    n = int(same[1].split("/")[1].split()[0])
+    assert same[1] == f"{n}/{n} bitwise equal" and n >= 5
+    assert int(control[1].split("/")[0]) > 0
