@@ -38,6 +38,11 @@ class _LevelSkips(nn.Module):
         self.levels = _check_levels(levels)
 
 
+def _nearest_depth(depth: torch.Tensor, size: tuple[int, int]) -> torch.Tensor:
+    """The authors' depth at a level: nearest-neighbour resampling of (B,1,H,W) to ``size``."""
+    return F.interpolate(depth, size=size, mode="nearest")
+
+
 def code_scaled_intrinsics(K: torch.Tensor, s: float) -> torch.Tensor:
     """K (B,3,3) with fx, fy, cx, cy all multiplied by s: the authors' code (exact is ``scale_intrinsics``)."""
     K = K.clone()
@@ -63,19 +68,16 @@ class _WarpingSkips(_LevelSkips):
         self.align, self.padding = align, padding
         self.depth_downsample = check_choice(depth_downsample, DEPTH_DOWNSAMPLES, "skip_depth")
         self.intrinsics_scaling = check_choice(intrinsics_scaling, INTRINSICS_SCALINGS, "skip_intrinsics")
+        # The two fidelity switches as the functions they choose, once.
+        self.downsample = _nearest_depth if depth_downsample == "nearest" else downsample_depth
+        self.scale_K = code_scaled_intrinsics if intrinsics_scaling == "code" else scale_intrinsics
 
     def at_level(self, lv: str, f: torch.Tensor, depth: torch.Tensor, K: torch.Tensor):
         """The depth brought to a level's features f (B,C,h,w) and K scaled to it: (B,1,h,w), (B,3,3)."""
         s = SKIP_STRIDES[lv]
         if s == 1:
             return depth, K
-        size = tuple(f.shape[-2:])
-        if self.depth_downsample == "nearest":
-            d = F.interpolate(depth, size=size, mode="nearest")
-        else:
-            d = downsample_depth(depth, size)
-        Ks = code_scaled_intrinsics(K, 1.0 / s) if self.intrinsics_scaling == "code" else scale_intrinsics(K, 1.0 / s)
-        return d, Ks
+        return self.downsample(depth, tuple(f.shape[-2:])), self.scale_K(K, 1.0 / s)
 
     def warp(self, f, d, K, T):
         return warp(f, d, K, T, self.align, self.padding)[0]

@@ -145,11 +145,13 @@ class Chen(nn.Module):
         self.head = head
         init_normal(self)
         self.depth = depth(image_size=image_size, n_points=n_points) if depth is not None else None
+        self._depths = self._own_depths if depth is None else self._source_depths  # chosen once
 
-    def _depths(self, z_s: torch.Tensor, z_t: torch.Tensor, batch: Batch, needs: frozenset[str]) -> Outputs:
+    def _source_depths(self, z_s: torch.Tensor, z_t: torch.Tensor, batch: Batch, needs: frozenset[str]) -> Outputs:
+        return self.depth(z_t, z_s, lambda: self.encoder(to_model_range(batch["tgt"])), batch, needs)
+
+    def _own_depths(self, z_s: torch.Tensor, z_t: torch.Tensor, batch: Batch, needs: frozenset[str]) -> Outputs:
         encode_target = lambda: self.encoder(to_model_range(batch["tgt"]))  # noqa: E731
-        if self.depth is not None:
-            return self.depth(z_t, z_s, encode_target, batch, needs)
         # One decoder call per latent (each normalised by its own batch statistics), as a loss asks for it.
         out = {"depth": self.head(self.decoder(z_t))}
         if Extras.DEPTH_SRC in needs:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import torch
 import torch.nn as nn
-import torch.nn.functional as F
 
 from nvs.models.baselines import POSE_DIM, BaselineOutputs, halvings, pose_code
 from nvs.models.blocks import act, down, up_transposed
@@ -47,6 +46,11 @@ class Tatarchenko(nn.Module):
                                        for cin, cout in zip([enc[-1]] + dec[:-1], dec)])
         self.out = nn.Conv2d(dec[-1], 3, 3, padding=1, padding_mode="reflect")
         self.channels = enc[-1]
+        # Bottlenecks other than 4x4 (sizes that are no power of two) are pooled to 4x4 and resized back.
+        same = self.bottleneck == 4
+        self.to_4x4 = nn.Identity() if same else nn.AdaptiveAvgPool2d(4)
+        self.from_4x4 = nn.Identity() if same else nn.Upsample(size=(self.bottleneck,) * 2, mode="bilinear",
+                                                                align_corners=False)
         # Without normalisation, PyTorch's default init shrinks the signal layer by layer until the output no longer
         # depends on the input; He init for LeakyReLU(0.2) keeps it alive.
         for m in self.modules():
@@ -55,13 +59,9 @@ class Tatarchenko(nn.Module):
                 nn.init.zeros_(m.bias)
 
     def forward(self, batch: Batch, needs: frozenset[str] = frozenset()) -> Outputs:
-        x = self.encoder(to_model_range(batch["src"]))
-        if self.bottleneck != 4:
-            x = F.adaptive_avg_pool2d(x, 4)
+        x = self.to_4x4(self.encoder(to_model_range(batch["src"])))
         h = self.image_fc(x.flatten(1))
         p = self.pose_fc(pose_code(batch["T_tgt_src"], batch["pivot"]).to(h.dtype))
-        x = self.joint_fc(torch.cat([h, p], dim=1)).view(-1, self.channels, 4, 4)
-        if self.bottleneck != 4:
-            x = F.interpolate(x, size=(self.bottleneck,) * 2, mode="bilinear", align_corners=False)
+        x = self.from_4x4(self.joint_fc(torch.cat([h, p], dim=1)).view(-1, self.channels, 4, 4))
         rgb = torch.tanh(self.out(self.decoder(x)))
         return BaselineOutputs("tatarchenko", rgb=to_image_range(rgb), rgb_scales=[rgb])
