@@ -60,5 +60,17 @@ def test_every_network_returns_the_contract(model, tmp_path):
     assert Outputs.__required_keys__ <= set(out) <= Outputs.__required_keys__ | Outputs.__optional_keys__
     assert asked <= set(out)
     assert out["rgb"].shape == (2, 3, 64, 64) and 0 <= out["rgb"].min() and out["rgb"].max() <= 1
-    assert len(out["rgb_scales"]) == net.n_scales and out["rgb_scales"][-1].shape == (2, 3, 64, 64)
+    assert len(out["rgb_scales"]) == getattr(net, "n_scales", 1) and out["rgb_scales"][-1].shape == (2, 3, 64, 64)
     torch.testing.assert_close(out["rgb_scales"][-1], out["rgb"] * 2 - 1, atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("model", ["copy_source", "gt_warp"])
+def test_training_a_reference_model_says_it_has_nothing_to_train(model, tmp_path):
+    from nvs.errors import UserError
+
+    cfg = compose_train([f"model={model}", f"paths.root_dir={tmp_path}"])  # the default loss list: recon at 4 scales
+    cfg.paths.output_dir = str(tmp_path)
+    OmegaConf.resolve(cfg)
+    module = build_module(cfg)
+    with pytest.raises(UserError, match=f"model '{model}' has no trainable parameters; evaluate it with nvs.evaluate"):
+        module.on_fit_start()

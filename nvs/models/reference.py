@@ -10,9 +10,11 @@ from nvs.types import Batch, Outputs
 
 
 class CopySource(nn.Module):
-    """Predicts the source image unchanged: the floor any method must beat."""
+    """Predicts the source image unchanged: the floor any method must beat.
 
-    n_scales = 1  # len(rgb_scales)
+    No ``n_scales``: a reference trains nothing, so no loss is checked against it (training one stops at the start
+    with the message that it has no trainable parameters).
+    """
 
     def __init__(self, image_size: int | None = None):
         super().__init__()
@@ -31,8 +33,6 @@ class GroundTruthWarp(nn.Module):
     ``1 / sky_disparity`` away, and pixels with no correspondence keep the source pixel (``conf/model/gt_warp.yaml``
     reads it from the data config's depth head: its far limit).
     """
-
-    n_scales = 1  # len(rgb_scales)
 
     def __init__(self, image_size: int | None = None, fill: float = 1.0, sky_disparity: float | None = None):
         super().__init__()
