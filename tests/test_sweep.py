@@ -49,13 +49,16 @@ def test_every_study_row_composes_with_the_real_config(path, scale, tmp_path):
         assert row.data is None or cfg.data.name == row.data
 
 
-def test_each_study_carries_both_reference_rows_per_dataset():
+def test_each_study_carries_every_reference_row_per_dataset():
+    """Floors and ceilings in every table: copy source, the ground-truth warp, the constant depth at the training
+    mean, and (an oracle) each image's plane at its ground-truth mean."""
     for path in STUDIES:
         study = sweep.load_study(path)
         datasets = {_compose_row(study, r).data.name for r in study.rows if not r.reference}
         for data in datasets:
-            refs = {r.reference for r in study.rows if r.reference and r.data == data}
-            assert refs == {"copy_source", "gt_warp"}, (path.stem, data)
+            refs = {r.reference: r for r in study.rows if r.reference and r.data == data}
+            assert set(refs) == {"copy_source", "gt_warp", "mean_depth", "gt_plane"}, (path.stem, data)
+            assert refs["gt_plane"].oracle and not refs["mean_depth"].oracle, (path.stem, data)
 
 
 def test_runs_shared_between_studies_have_the_same_config(tmp_path):
@@ -613,7 +616,8 @@ def test_orderings_are_decided_by_a_paired_bootstrap_over_test_models(tmp_path):
     pairs = {ln.split(":")[0].strip("- "): ln for ln in lines[l1_at + 1:l1_at + 4]}
     assert pairs["c / b"].startswith("  - c / b: unresolved, Δ +0.00000 [-0.")
     assert "over 10 test models (30 pairs)" in pairs["c / b"]
-    assert pairs["c / a"].startswith("  - c / a: agree, Δ -0.10000 [-0.1") and "b / a: agree, Δ -0.10000" in pairs["b / a"]
+    assert pairs["c / a"].startswith("  - c / a: agree, Δ -0.10000 [-0.1")
+    assert "b / a: agree, Δ -0.10000" in pairs["b / a"]
     # SSIM: higher is better; the same verdicts (the CSV's ssim_paper is 1 - l1)
     ssim_line = next(line for line in lines if line.startswith("- **SSIM (paper)**"))
     assert "of 3 pairs 2 agree, 0 swap, 1 unresolved" in ssim_line
@@ -677,7 +681,8 @@ def test_exported_jobs_rebuild_the_tables_on_a_fresh_clone(fabricated, tmp_path)
         return [ln for ln in text.splitlines() if ",done," in ln]
 
     assert len(done(first_csv)) == 5 and done((results / "fab.csv").read_text()) == done(first_csv)
-    lines = {ln.split("|")[1].strip(): ln for ln in (results / "fab.md").read_text().splitlines() if ln.startswith("| ")}
+    lines = {ln.split("|")[1].strip(): ln for ln in (results / "fab.md").read_text().splitlines()
+             if ln.startswith("| ")}
     first = {ln.split("|")[1].strip(): ln for ln in first_md.splitlines() if ln.startswith("| ")}
     assert lines["Full model"] == first["Full model"] and lines["copy (reference)"] == first["copy (reference)"]
     # A job the runner would launch: exported jobs are done, the failed and the missing one are not.

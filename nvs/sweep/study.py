@@ -19,6 +19,11 @@ from omegaconf import OmegaConf
 from nvs.errors import UserError
 from nvs.metric_spec import METRICS
 from nvs.runs import REFERENCE_MODELS  # the one list of the models evaluated without training
+
+# The depth floors (nvs/models/reference_planes.py), also evaluated without training: the constant depth at the
+# training views' mean, and each test image's plane at its ground-truth mean (an oracle).
+PLANE_REFERENCES = ("mean_depth", "gt_plane")
+REFERENCES = (*REFERENCE_MODELS, *PLANE_REFERENCES)
 from nvs.sweep.schema import Source, build
 
 # Table layouts: 'metrics' (the paper's tables: metrics, params, costs, paper numbers) or 'cost' (cost against error,
@@ -36,7 +41,7 @@ class Row:
     run: str = ""                  # run-directory stem (default: name); the same run in two studies is one job
     experiment: str | None = None
     overrides: tuple[str, ...] = ()
-    reference: Literal[REFERENCE_MODELS] | None = None  # copy_source | gt_warp: evaluated by nvs.evaluate, one seed
+    reference: Literal[REFERENCES] | None = None  # one of REFERENCES: evaluated by nvs.evaluate, one seed
     data: str | None = None        # required for reference rows; for trained rows read from the composed config
     paper: dict[str, float] = field(default_factory=dict)
     oracle: bool = False           # uses ground truth at test time: shown, never the best or the pick of a cost table

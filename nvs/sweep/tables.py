@@ -66,7 +66,9 @@ def render_markdown(study: Study, records: list[dict], provenance: dict) -> str:
                   "orderings, not values. SSIM (paper) is the paper's own SSIM variant; SSIM is the standard one.",
                   ""]
     lines += ["Values are mean ± sample std over the seeds that finished (n = finished/planned); reference rows need "
-              "no training (copy source = floor, warp with ground-truth depth = ceiling of depth-based warping).", ""]
+              "no training (copy source = floor, warp with ground-truth depth = ceiling of depth-based warping; for "
+              "depth, a constant plane at the training views' mean depth is the floor that reads no test ground "
+              "truth, and each image's plane at its ground-truth mean is an oracle).", ""]
     groups: dict[str | None, list[dict]] = {}
     for r in rows:
         groups.setdefault(r["data"] if study.group_by == "data" else None, []).append(r)
