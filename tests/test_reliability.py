@@ -222,7 +222,7 @@ def test_nonfinite_loss_is_one_line_naming_the_real_key(tmp_path):
 
 
 def test_a_checkpoint_with_flipped_bytes_is_one_clear_error(tmp_path):
-    from nvs.train import _complete
+    from nvs.training import _complete
 
     path = tmp_path / "last.ckpt"
     torch.save({"state_dict": {"w": torch.arange(5000.0)}, "global_step": 2}, path)
@@ -301,7 +301,7 @@ class SignalAt(L.Callback):
 
 @pytest.mark.parametrize("signum", [signal.SIGTERM, pytest.param(signal.SIGINT, marks=pytest.mark.slow)])
 def test_a_signal_saves_last_ckpt_and_says_how_to_resume(objects_root, tmp_path, signum):
-    from nvs.train import run
+    from nvs.training import run
 
     def cfg(kill: bool):
         c = compose_train([f"data.root={objects_root}", f"paths.root_dir={tmp_path}", *TRAIN, *SMALL,
@@ -341,9 +341,9 @@ def test_a_signal_saves_last_ckpt_and_says_how_to_resume(objects_root, tmp_path,
 
 
 def test_signal_outside_training_interrupts_at_once(tmp_path):
-    from nvs.train import _Interruption
+    from nvs.fit_callbacks import Interruption
 
-    stop = _Interruption(tmp_path / "last.ckpt", "python -m nvs.train x=1")
+    stop = Interruption(tmp_path / "last.ckpt", "python -m nvs.train x=1")
     with pytest.raises(Interrupted) as err:
         stop._handler(signal.SIGTERM, None)
     assert err.value.message == "interrupted by SIGTERM before any checkpoint was written: nothing to resume"

@@ -12,7 +12,7 @@ from kornia.geometry.camera import project_points, unproject_points
 from omegaconf import OmegaConf
 from scipy.spatial.transform import Rotation
 
-import nvs.train
+import nvs.training
 from nvs import stress
 from nvs.geometry import inverse_warp, invert_pose, pose_matrix, project_to_source
 from nvs.losses import LossTerm
@@ -236,15 +236,15 @@ def _guard_run(objects_root, tmp_path, monkeypatch, nonfinite: str, nan: NaNFrom
                          "loss=[recon]", "test=false", "trainer.enable_progress_bar=false"])
     cfg.paths.output_dir = str(tmp_path)
     OmegaConf.resolve(cfg)
-    real = nvs.train.build_module
+    real = nvs.training.build_module
 
     def with_nan(c):
         module = real(c)
         module.losses["nan"] = nan
         return module
 
-    monkeypatch.setattr(nvs.train, "build_module", with_nan)
-    return nvs.train.run(cfg, tmp_path)
+    monkeypatch.setattr(nvs.training, "build_module", with_nan)
+    return nvs.training.run(cfg, tmp_path)
 
 
 def _finite_checkpoint(path) -> int:
@@ -311,8 +311,8 @@ def test_training_under_stress_counts_nonfinite_steps():
 
 
 @pytest.mark.slow
-def test_determinism_section_runs_the_training_command(tmp_path):
-    """Three `python -m nvs.train` runs: the same seed agrees bitwise, the control seed differs."""
+def test_determinism_section_runs_the_training_library_call(tmp_path):
+    """Three `nvs.training.run` runs: the same seed agrees bitwise, the control seed differs."""
     from nvs.stress.determinism import determinism_section
 
     (same, control) = determinism_section(str(tmp_path))

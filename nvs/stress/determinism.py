@@ -2,34 +2,33 @@
 
 from __future__ import annotations
 
-import json
 import math
-import subprocess
-import sys
 from pathlib import Path
 
+from omegaconf import OmegaConf
+
+from nvs.compose import compose
 from nvs.synthetic import write_objects_root
 
 DETERMINISM_STEPS = 4
-CHECKOUT = Path(__file__).resolve().parents[2]  # the nvs that runs this report runs the training command too
 
 
 def determinism_run(data_root: Path, out_dir: Path, seed: int, steps: int = DETERMINISM_STEPS) -> dict:
-    """A short ``python -m nvs.train`` run (train, validate, test) on the fixture dataset -> its test metrics.
+    """A short training run (train, validate, test) on the fixture dataset -> its test metrics.
 
-    The training command itself, in a child process: the report measures what users run, and a tool does not import
-    another tool's CLI module.
+    The library call ``nvs.training.run`` that ``python -m nvs.train`` makes, in this process, on the real
+    train.yaml with these overrides.
     """
+    from nvs.training import run
+
     overrides = [f"data.root={data_root}", f"seed={seed}", f"trainer.max_steps={steps}",
                  f"trainer.val_check_interval={steps // 2}", "data.loader.batch_size=2", "loss=[recon,warp]",
-                 "trainer.enable_progress_bar=false", "trainer.log_every_n_steps=1",
-                 f"paths.root_dir={out_dir}", f"hydra.run.dir={out_dir}"]
-    res = subprocess.run([sys.executable, "-m", "nvs.train", *overrides], capture_output=True, text=True,
-                         cwd=CHECKOUT)
-    if res.returncode != 0:
-        raise RuntimeError(f"python -m nvs.train {' '.join(overrides)} failed ({res.returncode}):\n"
-                           f"{res.stderr[-2000:]}")
-    return json.loads((out_dir / "metrics.json").read_text())["test"]
+                 "trainer.enable_progress_bar=false", "trainer.log_every_n_steps=1", f"paths.root_dir={out_dir}"]
+    cfg = compose("train", overrides)
+    cfg.paths.output_dir = str(out_dir)
+    OmegaConf.resolve(cfg)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    return run(cfg, out_dir)["test"]
 
 
 def determinism_section(work: str) -> list[list]:

@@ -57,7 +57,7 @@ TRAINING = ("{total} Adam steps in all (lr 1e-3, 10x the paper's), B=2, 64x64, "
             "`torch.autograd.set_detect_anomaly(True)`; each module keeps training across its batch "
             "kinds in order; one runs under bf16 autocast. Counts are steps with a non-finite value; "
             "*error* is what anomaly detection raised, if anything.")
-DETERMINISM = (f"Three short `nvs.train.run` runs of the paper's model ({DETERMINISM_STEPS} steps with "
+DETERMINISM = (f"Three short `nvs.training.run` runs of the paper's model ({DETERMINISM_STEPS} steps with "
                "`loss=[recon,warp]`, validation, test on 4 pairs) on a generated 4-model objects dataset, CPU: the "
                "same seed twice, then another seed as a control that the comparison can fail.")
 
