@@ -83,6 +83,21 @@ def test_switches_reach_the_components():
     assert losses["edge_smooth"].factor == 1.0 and len(losses["edge_smooth"].pairs) == 1
     assert losses["warp"].masked and losses["recon"].side_upsample == "bilinear"
     assert module.configure_optimizers().param_groups[0]["betas"][0] == 0.9
+    # ... as the functions they choose at construction (forward tests no switch)
+    from nvs import geometry, losses as L
+
+    assert net.skips.downsample is geometry.downsample_depth and net.skips.scale_K is geometry.scale_intrinsics
+    assert net.depth.decode_all == net.depth._jointly
+    assert losses["vgg"].to_range is L.IMAGE_RANGES["image"] and losses["warp"].reduce is L._valid_mean
+
+
+@pytest.mark.parametrize("norm_batches, calls", [("separate", [1, 1, 1]), ("joint", [3])])
+def test_depth_norm_batches_decodes_the_three_latents_in_one_call_or_three(norm_batches, calls):
+    module = build_module(compose_train(BASE + [NO_VGG, f"fidelity.depth_norm_batches={norm_batches}"]))
+    seen = []
+    module.net.depth.decoder.register_forward_hook(lambda m, args, out: seen.append(out.shape[0]))
+    module.net(fixture_batch(B=1), module.train_needs)
+    assert seen == calls  # batch sizes: transformed, source and target latents, alone or stacked
 
 
 @pytest.mark.parametrize("override, message", [

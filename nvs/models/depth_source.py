@@ -32,6 +32,7 @@ class _LatentDepth(nn.Module):
     def __init__(self, norm_batches: str = "separate"):
         super().__init__()
         self.norm_batches = check_choice(norm_batches, NORM_BATCHES, "depth_norm_batches")
+        self.decode_all = self._separately if norm_batches == "separate" else self._jointly  # chosen once
 
     def decode(self, z: torch.Tensor) -> torch.Tensor:
         """(N,n,3) -> (N,1,S,S)."""
@@ -42,13 +43,14 @@ class _LatentDepth(nn.Module):
         # The code's order: transformed latent, source latent, target's own latent.
         extras = [key for key in (Extras.DEPTH_SRC, Extras.DEPTH_FROM_TGT) if key in needs]
         latents = [z_t] + [encode_target() if key == Extras.DEPTH_FROM_TGT else z_s for key in extras]
-        if len(latents) == 1:
-            depths = [self.decode(z_t)]
-        elif self.norm_batches == "separate":
-            depths = [self.decode(z) for z in latents]
-        else:
-            depths = self.decode(torch.cat(latents)).chunk(len(latents))
+        depths = self.decode_all(latents) if extras else [self.decode(z_t)]
         return {"depth": depths[0], **dict(zip(extras, depths[1:]))}
+
+    def _separately(self, latents: list[torch.Tensor]) -> list[torch.Tensor]:
+        return [self.decode(z) for z in latents]
+
+    def _jointly(self, latents: list[torch.Tensor]) -> list[torch.Tensor]:
+        return list(self.decode(torch.cat(latents)).chunk(len(latents)))
 
 
 class PredictedDepth(_LatentDepth):
