@@ -708,3 +708,24 @@ def test_a_result_in_runs_is_preferred_and_a_new_export_replaces_the_old(fabrica
     assert sweep.run([str(study.path), "--results", str(results), "--collect-only", str(root), "--export-jobs"]) == 1
     assert json.loads((exported / "full_s0" / "metrics.json").read_text())["test"]["l1"] == 0.05
     assert not [p for p in exported.iterdir() if p.name.startswith(".")]  # no half-written export left behind
+
+
+def test_the_stopping_rule_record_reaches_the_csv_the_header_and_the_export(fabricated, tmp_path):
+    from nvs.convergence import RECORD
+    from nvs.sweep.collect import CONVERGENCE
+
+    assert CONVERGENCE == RECORD
+    study, root = fabricated
+    for name, outcome, step in (("full_s0", "converged", 6), ("full_s1", "max_steps", 10)):
+        (root / name / RECORD).write_text(json.dumps({"outcome": outcome, "step": step, "reason": f"why {name}"}))
+        metrics = json.loads((root / name / "metrics.json").read_text())
+        (root / name / "metrics.json").write_text(json.dumps(metrics | {"steps": step}))
+    results = tmp_path / "results"
+    sweep.run([str(study.path), "--collect-only", str(root), "--results", str(results), "--export-jobs"])
+    rows = {(r["row"], r["seed"]): r for r in csv.DictReader(open(results / "fab.csv"))}
+    assert (rows["full", "0"]["stop"], rows["full", "0"]["stop_reason"]) == ("converged", "why full_s0")
+    assert rows["full", "1"]["stop"] == "max_steps" and rows["chen", "0"]["stop"] == ""
+    md = (results / "fab.md").read_text()
+    assert "| steps | 10 at most (callbacks=convergence;" in md
+    assert "1 of 2 trained jobs converged earlier, at steps 6–6" in md
+    assert (results / "jobs" / study.scale / "full_s0" / RECORD).is_file()

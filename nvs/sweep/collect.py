@@ -17,11 +17,13 @@ SKIP_LEVELS = ("conv0", "conv2", "conv3", "conv4")
 # Fraction of (sample, level) warps an adaptive-skips model skipped at test time, overall and per level.
 SKIP_FRACTIONS = ("warp_skipped", *(f"warp_skipped_{lv}" for lv in SKIP_LEVELS))
 # Costs read from metrics.json: eval forward time per test image (no metrics), median train step time.
+# The stopping rule's record (nvs.convergence.RECORD; not imported here: that module loads Lightning).
+CONVERGENCE = "convergence.json"
 COSTS = ("eval_ms_per_image", "eval_forward_ms_per_image", "train_step_ms")
 CSV_COLUMNS = ["study", "row", "label", "kind", "data", "seed", "status", "error", *METRICS, "n_pairs", "params",
                "train_wall_s", "train_samples_per_s", "eval_ms_per_image", "steps", "image_size", "precision",
                "device", "git_sha", "run_dir", "overrides", *[f"paper_{m}" for m in METRICS],
-               "eval_forward_ms_per_image", "train_step_ms", *SKIP_FRACTIONS]
+               "eval_forward_ms_per_image", "train_step_ms", *SKIP_FRACTIONS, "stop", "stop_reason"]
 
 
 def _read_overrides(job_dir: Path) -> list[str]:
@@ -57,6 +59,8 @@ def collect(jobs: list[Job]) -> list[dict]:
     records = []
     for j in jobs:
         m = (read_json(j.dir / "metrics.json") if j.status == Status.DONE else None) or {}
+        # the stopping rule's record (callbacks=convergence): 'converged' at metrics' steps, or 'max_steps'
+        stop = (read_json(j.dir / CONVERGENCE) if j.status == Status.DONE else None) or {}
         test = m.get("test") or {}
         error = j.error
         if j.status == Status.INCOMPLETE:
@@ -75,6 +79,7 @@ def collect(jobs: list[Job]) -> list[dict]:
             "git_sha": m.get("git_sha"), "run_dir": shown_path(j.dir),
             "overrides": " ".join(_read_overrides(j.dir)) if j.status == Status.DONE else "",
             **{f"paper_{k}": j.row.paper.get(k) for k in METRICS},
+            "stop": stop.get("outcome"), "stop_reason": stop.get("reason"),
             "dir": j.dir,  # not a CSV column: where the tables read the job's per-image results
         })
     return records

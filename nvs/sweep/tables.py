@@ -54,7 +54,7 @@ def render_markdown(study: Study, records: list[dict], provenance: dict) -> str:
         f"| date | {provenance['date']} |",
         f"| device | {'; '.join(provenance['devices']) or '—'} |",
         f"| image size | {study.size}² |",
-        f"| steps | {study.steps} |",
+        f"| steps | {_steps_cell(study, records)} |",
         f"| seeds | {', '.join(str(s) for s in study.seeds)} (reference rows: {study.seeds[0]}) |",
         f"| jobs | {', '.join(f'{n} {s}' for s, n in sorted(counts.items()))} |",
         "",
@@ -77,6 +77,17 @@ def render_markdown(study: Study, records: list[dict], provenance: dict) -> str:
     else:
         lines += _metrics_tables(groups, present, paper_metrics)
     return "\n".join(lines)
+
+
+def _steps_cell(study: Study, records: list[dict]) -> str:
+    """The budget, and where the stopping rule (callbacks=convergence) ended the finished trained jobs."""
+    ruled = [r for r in records if r["status"] == "done" and r.get("stop")]
+    if not ruled:
+        return str(study.steps)
+    stopped = sorted(int(r["steps"]) for r in ruled if r["stop"] == "converged" and r.get("steps") is not None)
+    text = f"{study.steps} at most (callbacks=convergence; why each job stopped: the CSV's stop_reason); " \
+           f"{len(stopped)} of {len(ruled)} trained jobs converged earlier"
+    return text + (f", at steps {stopped[0]}–{stopped[-1]}" if stopped else "")
 
 
 def _label(r: dict) -> str:
