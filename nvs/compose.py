@@ -9,34 +9,40 @@ from omegaconf import DictConfig
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
 
-def compose(config_name: str, overrides: list[str] | tuple[str, ...] = (), resolve: bool = False) -> DictConfig:
-    """``conf/<config_name>.yaml`` with ``overrides`` as Hydra composes it (the hydra node excluded).
-
-    Works inside another Hydra app (a ``@hydra.main`` tool, a test): the outer global state is saved and restored.
-    A composition error is one ``UserError`` naming the overrides.
-    """
+def compose_raw(config_name: str, overrides: list[str] | tuple[str, ...] = ()) -> DictConfig:
+    """As :func:`compose`, but Hydra's own exception propagates (for callers that word the error themselves)."""
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
-    from omegaconf import OmegaConf
 
-    from nvs.errors import UserError
-
-    overrides = [str(o) for o in overrides]
     outer = GlobalHydra.instance().is_initialized()
     if outer:
         saved = GlobalHydra.instance().hydra
         GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-            cfg = hydra_compose(config_name=config_name, overrides=overrides)
-    except Exception as err:  # noqa: BLE001 - a composition error is a problem in the caller's overrides
-        raise UserError(f"conf/{config_name}.yaml with overrides {overrides} does not compose: "
-                        f"{str(err).splitlines()[0]}") from None
+            return hydra_compose(config_name=config_name, overrides=[str(o) for o in overrides])
     finally:
         if outer:
             GlobalHydra.instance().clear()
             GlobalHydra.instance().initialize(saved)
+
+
+def compose(config_name: str, overrides: list[str] | tuple[str, ...] = (), resolve: bool = False) -> DictConfig:
+    """``conf/<config_name>.yaml`` with ``overrides`` as Hydra composes it (the hydra node excluded).
+
+    Works inside another Hydra app (a ``@hydra.main`` tool, a test): the outer global state is saved and restored.
+    A composition error is one ``UserError`` naming the overrides.
+    """
+    from omegaconf import OmegaConf
+
+    from nvs.errors import UserError
+
+    try:
+        cfg = compose_raw(config_name, overrides)
+    except Exception as err:  # noqa: BLE001 - a composition error is a problem in the caller's overrides
+        raise UserError(f"conf/{config_name}.yaml with overrides {[str(o) for o in overrides]} does not compose: "
+                        f"{str(err).splitlines()[0]}") from None
     if resolve:
         OmegaConf.resolve(cfg)
     return cfg

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import hydra
@@ -22,10 +23,34 @@ def main_cli() -> None:
     try:
         sys.argv[1:] = trainer_arguments(sys.argv[1:])
         check_creatable(run_dir_of(sys.argv[1:], "train"))  # Hydra creates it before main(), with a traceback
+        check_composes(sys.argv[1:])
     except UserError as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)
     main()
+
+
+def check_composes(argv: list[str]) -> None:
+    """A single run's overrides compose, or one UserError naming the key (instead of Hydra's exit 1 before main).
+
+    Multiruns and Hydra's own flags (``--cfg``, ``--help``...) are left to Hydra: their overrides are sweeps.
+    """
+    if any(a.startswith("-") for a in argv):
+        return
+    from hydra.errors import HydraException
+
+    from nvs.compose import compose_raw
+
+    try:
+        compose_raw("train", argv)
+    except HydraException as err:
+        lines = [ln.strip() for ln in str(err).split("Config search path")[0].splitlines() if ln.strip()]
+        m = re.match(r"Could not override '([^']+)'", lines[0]) if lines else None
+        if m:
+            value = next((a.split("=", 1)[1] for a in argv if a.split("=", 1)[0] == m.group(1)), "...")
+            raise UserError(f"config '{m.group(1)}': no such key in conf/train.yaml (a new key is added with "
+                            f"+{m.group(1)}={value})") from None
+        raise UserError(" ".join(lines[:8])) from None
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="train")

@@ -168,7 +168,12 @@ def test_short_run_writes_artifacts(objects_root, tmp_path):
 
 def test_unknown_override_key_is_one_clear_error(objects_root, tmp_path):
     res = _train(objects_root, tmp_path, "model.no_such_key=3")
-    assert res.returncode != 0 and "no_such_key" in res.stderr and "Traceback" not in res.stderr
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert res.stderr.strip() == ("error: config 'model.no_such_key': no such key in conf/train.yaml (a new key is "
+                                  "added with +model.no_such_key=3)")
+    res = _train(objects_root, tmp_path, "model=bogus")
+    assert res.returncode == 2 and res.stderr.startswith("error: ") and "Available options in 'model'" in res.stderr
+    assert "nvs" in res.stderr.split("Available options in 'model':")[1].split()
 
 
 def _evaluate(tmp_path, *args):
