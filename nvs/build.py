@@ -12,7 +12,6 @@ from nvs import fidelity
 from nvs.data.datamodule import NVSDataModule, build_datamodule
 from nvs.errors import UserError
 from nvs.module import NVSModule
-from nvs.provenance import device_name, git_sha  # noqa: F401 - re-exported until every caller imports nvs.provenance
 
 
 def _instantiate(node, key: str, **kwargs):
