@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-
 import torch
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
