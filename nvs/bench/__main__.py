@@ -73,7 +73,8 @@ def _profiles(cfg: DictConfig, device: torch.device) -> None:
         prof = profile_step(list(cfg.models[model]), cfg.profile_mode, size, batch, device, cfg.paths.root_dir,
                             warmup=cfg.warmup + 1, steps=cfg.repeats)
         head = header(command_line("nvs.bench"), device, threads=torch.get_num_threads())
-        path = f"{cfg.out_dir}/profile_{_slug(device_name(device).split('(')[0])}_{size}.md"
+        suffix = "" if model == "full" else f"_{model}"
+        path = f"{cfg.out_dir}/profile_{_slug(device_name(device).split('(')[0])}_{size}{suffix}.md"
         write_text(path, markdown(head, prof))
         print(f"wrote {path}")
 
@@ -85,6 +86,8 @@ def main(cfg: DictConfig) -> None:
     from nvs.bench.run import bench_size
 
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if cfg.threads is not None:
+        torch.set_num_threads(_positive(cfg.threads, "threads"))
     if cfg.profile:
         return _profiles(cfg, device)
     pairs, models = plan(cfg)

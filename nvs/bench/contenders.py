@@ -39,6 +39,7 @@ class Contender:
     state: Callable[[], int]  # bytes that persist between steps (parameters, buffers, optimiser state)
     extra: dict[str, Callable[[], object]] = field(default_factory=dict)  # further eval paths (the authors')
     compiled: bool = False
+    module: torch.nn.Module | None = None  # the NVSModule (nvs rows), for inspection
 
 
 @dataclass
@@ -54,7 +55,8 @@ def make_batches(size: int, train_batch: int, eval_batch: int, throughput_batch:
     def batch(B, seed):
         return synthetic_batch(B, size, "objects", seed=seed, depth=(1.5, 2.5), device=device)
 
-    return Batches(batch(train_batch, 0), batch(eval_batch, 1), batch(throughput_batch, 2) if throughput_batch else None)
+    return Batches(batch(train_batch, 0), batch(eval_batch, 1),
+                   batch(throughput_batch, 2) if throughput_batch else None)
 
 
 def train_config(overrides: list[str], size: int, root_dir: str, channels_last: bool):
@@ -78,8 +80,11 @@ def nvs_contender(overrides: list[str], mode: str, batches: Batches, device: tor
         return torch.autocast(device.type, dtype=dtype) if dtype else contextlib.nullcontext()
 
     def forward_loss(batch):
-        out = module(dict(batch), module.train_needs)
-        return module.loss(out, batch)[0], out
+        batch = dict(batch)  # the module puts src and tgt in its memory format, as in training_step, whose
+        out = module(batch, module.train_needs)  # losses then read that batch
+        for term in critics:  # as training_step: a critic steps on the detached predictions first
+            term.update_critic(out, batch)
+        return module.loss(out, batch)[0]
 
     def infer(batch):
         return module(dict(batch))["rgb"]
@@ -90,9 +95,7 @@ def nvs_contender(overrides: list[str], mode: str, batches: Batches, device: tor
     def train():
         module.train()
         with autocast():
-            total, out = forward_loss(batches.train)
-            for term in critics:  # as training_step: the critic steps on detached predictions first
-                term.update_critic(out, batches.train)
+            total = forward_loss(batches.train)
         total.backward()
         opt.step()
         opt.zero_grad(set_to_none=True)
@@ -107,7 +110,7 @@ def nvs_contender(overrides: list[str], mode: str, batches: Batches, device: tor
     return Contender(train=train, eval=evaluate(batches.eval),
                      throughput=evaluate(batches.throughput) if batches.throughput else None,
                      params=parameter_count(module.net), state=lambda: state_bytes([module], [opt]),
-                     compiled=compiled)
+                     compiled=compiled, module=module)
 
 
 def reference_contender(path: str, batches: Batches, device: torch.device) -> Contender:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import torch
 from torch.profiler import ProfilerActivity, profile
 
+from nvs.bench import measure
 from nvs.bench.contenders import make_batches, nvs_contender
 from nvs.provenance import markdown as provenance_markdown
 
@@ -18,23 +19,22 @@ _CONVERSIONS = ("aten::to", "aten::_to_copy", "aten::to_dtype", "aten::_autocast
 _CLONES = ("aten::clone", "aten::contiguous")
 
 
-def _copy_kind(evt) -> str:
-    parent = evt.cpu_parent
-    while parent is not None:
-        if parent.name in _CONVERSIONS:
-            return "dtype/layout conversions (aten::to, _to_copy: autocast casts, memory-format changes)"
-        if parent.name in _CLONES:
-            return "clones and contiguous"
+def _copy_kind(evt) -> tuple[str, str]:
+    """-> (kind, the nearest operator above the copy that is not itself a copy or conversion)."""
+    kind, parent = "other copy_ (in place)", evt.cpu_parent
+    while parent is not None and (parent.name in _CONVERSIONS + _CLONES or parent.name == "aten::copy_"):
+        if kind.startswith("other"):
+            kind = ("dtype/layout conversions (aten::to, _to_copy: autocast casts, memory-format changes)"
+                    if parent.name in _CONVERSIONS else "clones and contiguous")
         parent = parent.cpu_parent
-    return "other copy_ (in place)"
+    return kind, parent.name if parent is not None else "(top level)"
 
 
 def profile_step(overrides: list[str], mode: str, size: int, batch: int, device: torch.device, root_dir: str,
                  warmup: int = 2, steps: int = 3) -> dict:
     """-> {"ops": [(name, self ms/step, calls/step)], "copies": {kind: ms/step}, "total_ms": ms/step, ...}."""
     contender = nvs_contender(overrides, mode, make_batches(size, batch, 1, None, device), device, root_dir, size)
-    for _ in range(warmup):
-        contender.train()
+    wall = measure.interleaved({"step": contender.train}, device, warmup, steps)["step"]
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
     with profile(activities=activities) as prof:
         for _ in range(steps):
@@ -42,18 +42,21 @@ def profile_step(overrides: list[str], mode: str, size: int, batch: int, device:
     events = prof.events()
     ops: dict[str, list[float]] = {}
     copies: dict[str, float] = {}
+    callers: dict[tuple[str, str], float] = {}
     for evt in events:
         ms = evt.self_cpu_time_total / 1000 / steps
         entry = ops.setdefault(evt.name, [0.0, 0])
         entry[0] += ms
         entry[1] += 1 / steps
         if evt.name == "aten::copy_":
-            kind = _copy_kind(evt)
+            kind, caller = _copy_kind(evt)
             copies[kind] = copies.get(kind, 0.0) + ms
+            callers[kind, caller] = callers.get((kind, caller), 0.0) + ms
     total = sum(v[0] for v in ops.values())
     ranked = sorted(((k, v[0], v[1]) for k, v in ops.items()), key=lambda x: -x[1])
     return {"size": size, "batch": batch, "mode": mode, "overrides": list(overrides), "steps": steps,
-            "total_ms": total, "ops": ranked, "copies": copies}
+            "total_ms": total, "wall_ms": wall.get("median_ms"), "ops": ranked, "copies": copies,
+            "copy_callers": sorted(((k, c, ms) for (k, c), ms in callers.items()), key=lambda x: -x[2])}
 
 
 def markdown(head: dict, prof: dict, top: int = 30) -> str:
@@ -62,13 +65,18 @@ def markdown(head: dict, prof: dict, top: int = 30) -> str:
              provenance_markdown(head), "",
              f"`torch.profiler` over {prof['steps']} steps after warm-up (model overrides: "
              f"`{' '.join(prof['overrides']) or 'none (the full model)'}`); self CPU time per step summed over "
-             f"every operator: **{total:.0f} ms** (profiler overhead included).", "",
+             f"every operator: **{total:.0f} ms** (profiler overhead included); the same step without the profiler: "
+             f"{prof['wall_ms']:.0f} ms (median of {prof['steps']}, after the warm-up).", "",
              "## Copies and dtype casts (self time of `aten::copy_`, by the operator that asked for it)", "",
              "| kind | ms/step | share of step |", "|---|---:|---:|"]
     for kind, ms in sorted(prof["copies"].items(), key=lambda x: -x[1]):
         lines.append(f"| {kind} | {ms:.1f} | {100 * ms / total:.1f}% |")
     all_copies = sum(prof["copies"].values())
     lines += [f"| **all copies** | **{all_copies:.1f}** | **{100 * all_copies / total:.1f}%** |", "",
+              "Who asks for them (the nearest operator above the copy; backward nodes are autograd's):", "",
+              "| kind | asked for by | ms/step |", "|---|---|---:|"]
+    lines += [f"| {kind.split(' (')[0]} | `{caller}` | {ms:.1f} |" for kind, caller, ms in prof["copy_callers"][:12]]
+    lines += ["",
               f"## Top {top} operators by self time", "", "| operator | self ms/step | share | calls/step |",
               "|---|---:|---:|---:|"]
     for name, ms, calls in prof["ops"][:top]:

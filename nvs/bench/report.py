@@ -36,7 +36,8 @@ def size_table(block: dict, peak: float | None) -> list[str]:
             f"{_f(row.get('eval_speedup'), '.2f')}× | {_f(row.get('throughput_images_per_s'), '.1f')} | "
             f"{_f(row.get('train_peak_mb'), '.0f')} / {_f(row.get('eval_peak_mb'), '.0f')} | "
             f"{_f(row.get('train_gflop_per_sample'), '.1f')} | {_f(row.get('eval_gflop_per_image'), '.1f')} | "
-            f"{_f(ach, '.0f')} | {_f(100 * ach / peak if ach and peak else None, '.0f')}{'%' if ach and peak else ''} |")
+            f"{_f(ach, '.0f')} | {_f(100 * ach / peak if ach and peak else None, '.0f')}"
+            f"{'%' if ach and peak else ''} |")
     return lines + [""]
 
 
