@@ -537,7 +537,7 @@ def test_skip_study_rows_run_end_to_end_on_fixture_data(objects_root, tmp_path):
     res = _sweep(str(study), "--runs", str(tmp_path / "runs"), "--results", str(tmp_path / "results"))
     assert res.returncode == 0, res.stderr[-3000:]
     rows = {r["row"]: r for r in csv.DictReader(open(tmp_path / "results" / "skip.csv"))}
-    assert len(rows) == 9 and all(r["status"] == "done" for r in rows.values())
+    assert len(rows) == 11 and all(r["status"] == "done" for r in rows.values())  # 7 trained, 4 reference
     assert rows["skip_adaptive_chairs"]["warp_skipped"] != "" and rows["skip_full_chairs"]["warp_skipped"] == ""
     assert all(rows[r]["eval_forward_ms_per_image"] != "" for r in rows)
     md = (tmp_path / "results" / "skip.md").read_text()
@@ -729,3 +729,32 @@ def test_the_stopping_rule_record_reaches_the_csv_the_header_and_the_export(fabr
     assert "| steps | 10 at most (callbacks=convergence;" in md
     assert "1 of 2 trained jobs converged earlier, at steps 6–6" in md
     assert (results / "jobs" / study.scale / "full_s0" / RECORD).is_file()
+
+
+@pytest.mark.slow
+def test_a_tiny_study_with_the_stopping_rule_and_floors_is_rebuilt_from_its_committed_files(objects_root, tmp_path):
+    """Run, export, remove the run directories (a fresh clone), --collect-only: the same rows and values."""
+    study = tmp_path / "tiny.yaml"
+    study.write_text(json.dumps({
+        "name": "tiny", "seeds": [0], "size": 64, "steps": 8,
+        "overrides": [f"data.root={objects_root}", "trainer.val_check_interval=2", "data.loader.batch_size=2",
+                      "trainer.limit_val_batches=1", "trainer.enable_progress_bar=false", "callbacks=convergence",
+                      "callbacks.convergence.min_improvement=10.0"],
+        "rows": [{"name": "recon_only", "experiment": "nvs_chairs", "overrides": ["loss=[recon]"]},
+                 {"name": "floor", "reference": "mean_depth", "data": "chairs"},
+                 {"name": "plane", "reference": "gt_plane", "data": "chairs", "oracle": True}]}))
+    runs, results = tmp_path / "runs", tmp_path / "results"
+    res = _sweep(str(study), "--runs", str(runs), "--results", str(results), "--export-jobs")
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "exported 3 finished job(s)" in res.stderr
+    rows = {r["row"]: r for r in csv.DictReader(open(results / "tiny.csv"))}
+    assert rows["recon_only"]["stop"] == "converged" and rows["recon_only"]["steps"] == "4"
+    assert float(rows["plane"]["depth_l1"]) == pytest.approx(0.0, abs=1e-5)  # the fixture's depth is one plane
+    first = (results / "tiny.csv").read_text()
+    import shutil
+
+    shutil.rmtree(runs)
+    again = _sweep(str(study), "--runs", str(runs), "--results", str(results), "--collect-only")
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert "3 done; launching 0" in again.stderr and (results / "tiny.csv").read_text() == first
+    assert not list((results / "jobs").rglob("*.ckpt"))
