@@ -66,6 +66,11 @@ class Convergence(L.Callback):
         self.stopped_step: int | None = None
         self.reason = ""
 
+    def on_train_start(self, trainer, pl_module):
+        # Resumed from a checkpoint written when the rule fired (last.ckpt at the stop step): stop again at once.
+        if self.stopped_step is not None:
+            trainer.should_stop = True
+
     def on_validation_end(self, trainer, pl_module):
         if trainer.sanity_checking or self.stopped_step is not None:
             return

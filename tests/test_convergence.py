@@ -101,6 +101,13 @@ def test_history_survives_a_resume(tmp_path):
     other = Convergence(str(tmp_path))
     other.load_state_dict(cb.state_dict())
     assert other.history == cb.history and other.stopped_step is None
+    # resumed from the checkpoint written at the stop: training stops again instead of running to max_steps
+    cb.stopped_step, cb.reason = 20, "converged"
+    resumed = Convergence(str(tmp_path))
+    resumed.load_state_dict(cb.state_dict())
+    trainer = type("T", (), {"should_stop": False})()
+    resumed.on_train_start(trainer, None)
+    assert trainer.should_stop and resumed.stopped_step == 20
 
 
 def test_the_config_option_adds_the_callback_to_the_defaults():
@@ -125,3 +132,20 @@ def test_a_real_training_run_stops_early(objects_root, tmp_path):
     metrics = json.loads((out / "metrics.json").read_text())
     assert record["outcome"] == "converged" and record["step"] == 4 and metrics["steps"] == 4
     assert "[convergence] stopping at step 4" in res.stderr
+
+
+def test_a_run_resumed_after_the_stop_does_not_train_on(tmp_path):
+    values = [0.8, 0.6, 0.5, 0.499, 0.3, 0.2, 0.1]
+    data = torch.utils.data.DataLoader(torch.zeros(1000, 1), batch_size=1)
+
+    def fit(ckpt_path=None):
+        ckpt = L.pytorch.callbacks.ModelCheckpoint(dirpath=tmp_path / "ckpt", save_last=True)
+        trainer = L.Trainer(max_steps=200, val_check_interval=10, check_val_every_n_epoch=None, limit_val_batches=1,
+                            callbacks=[Convergence(str(tmp_path)), ckpt], logger=False, enable_progress_bar=False,
+                            enable_model_summary=False, num_sanity_val_steps=0)
+        trainer.fit(_Scripted(values), train_dataloaders=data, val_dataloaders=data, ckpt_path=ckpt_path)
+        return trainer
+
+    assert fit().global_step == 40
+    assert fit(str(tmp_path / "ckpt" / "last.ckpt")).global_step == 40
+    assert read_record(tmp_path)["step"] == 40
