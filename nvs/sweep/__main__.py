@@ -14,8 +14,12 @@ in ``conf/`` changed) is moved to ``<runs>/<scale>/.stale/`` first, so a stale c
 job leaves ``failed.txt`` (its last error line) and is shown as failed in the tables.
 
 Collection writes ``results/<study>.csv`` (one line per job) and ``results/<study>.md`` (mean ± std over seeds
-per row, the paper's numbers beside ours; or, with ``table: cost``, cost against error with the cheapest row within
-1% of the best L1 marked), both atomically.
+per row, the paper's numbers beside ours, orderings decided by a paired bootstrap over test models; or, with
+``table: cost``, cost against error with the cheapest row within 1% of the best L1 marked), both atomically.
+
+Committed jobs: ``--export-jobs`` copies each finished job's small files to ``<results>/jobs/<scale>/``
+(``nvs.sweep.export``); every run treats the jobs found there as done under the same identity and staleness rule,
+so ``--collect-only`` on a fresh clone rebuilds the tables from them.
 """
 
 from __future__ import annotations
