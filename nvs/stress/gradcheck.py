@@ -46,7 +46,7 @@ def gradcheck_cases(size: int = 8, seed: int = 0) -> list[GradcheckCase]:
     from nvs.losses import DepthConsistencyLoss, EdgeSmoothLoss, ReconLoss, VGGLoss, WarpLoss
     from nvs.losses_branches import BranchReconLoss
     from nvs.models.depth_head import BoundedDepth, DisparityDepth
-    from nvs.models.net import Extras
+    from nvs.types import Extras
 
     g = torch.Generator().manual_seed(seed)
     dt, S = torch.float64, size
