@@ -3,9 +3,10 @@
 Validation runs every ``trainer.val_check_interval`` steps; after each one the callback reads the monitored value
 (``val/l1``) and asks :func:`converged`: over the last ``window`` (25%) of the steps so far, did the best value
 improve by less than ``min_improvement`` (1%) of the best value before that window? Then training stops, and the
-callback writes ``convergence.json`` in the run directory (why, at which step, every validation seen). A run that
-reaches ``trainer.max_steps`` first records that instead. ``metrics.json``'s ``steps`` is the step training
-stopped at. Enabled with ``callbacks=convergence`` (``conf/callbacks/convergence.yaml``).
+callback writes ``convergence.json`` in the run directory (why, at which step, and every validation with its step
+and training wall time: the convergence curves). A run that reaches ``trainer.max_steps`` first records that
+instead. ``metrics.json``'s ``steps`` is the step training stopped at. Enabled with ``callbacks=convergence``
+(``conf/callbacks/convergence.yaml``).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from __future__ import annotations
 import json
 import math
 import sys
+import time
 from pathlib import Path
 
 import lightning as L
@@ -63,10 +65,13 @@ class Convergence(L.Callback):
         self.dirpath, self.monitor = Path(dirpath), monitor
         self.window, self.min_improvement, self.min_steps = float(window), float(min_improvement), min_steps
         self.history: list[tuple[int, float]] = []
+        self.wall_s: list[float] = []      # training wall time at each validation, summed over resumed segments
+        self._segment_start, self._before = None, 0.0
         self.stopped_step: int | None = None
         self.reason = ""
 
     def on_train_start(self, trainer, pl_module):
+        self._segment_start, self._before = time.perf_counter(), (self.wall_s[-1] if self.wall_s else 0.0)
         # Resumed from a checkpoint written when the rule fired (last.ckpt at the stop step): stop again at once.
         if self.stopped_step is not None:
             trainer.should_stop = True
@@ -79,10 +84,12 @@ class Convergence(L.Callback):
             raise UserError(f"callbacks.convergence: '{self.monitor}' was not logged at validation; monitor one of "
                            f"{sorted(trainer.callback_metrics)}")
         step = int(trainer.global_step)
+        wall = self._before + (time.perf_counter() - self._segment_start if self._segment_start else 0.0)
         if self.history and self.history[-1][0] == step:  # a validation repeated at the same step (resume)
-            self.history[-1] = (step, float(value))
+            self.history[-1], self.wall_s[-1] = (step, float(value)), wall
         else:
             self.history.append((step, float(value)))
+            self.wall_s.append(wall)
         reason = converged(self.history, self.window, self.min_improvement, self.min_steps)
         if reason:
             self.stopped_step, self.reason = step, reason
@@ -106,14 +113,16 @@ class Convergence(L.Callback):
             "outcome": outcome, "step": int(trainer.global_step), "max_steps": int(trainer.max_steps),
             "reason": self.reason, "monitor": self.monitor, "window": self.window,
             "min_improvement": self.min_improvement, "min_steps": self.min_steps,
-            "history": [{"step": s, "value": v} for s, v in self.history]})
+            "history": [{"step": s, "value": v, "wall_s": round(w, 3)}
+                        for (s, v), w in zip(self.history, self.wall_s)]})
 
     def state_dict(self) -> dict:
-        return {"history": [list(h) for h in self.history], "stopped_step": self.stopped_step,
-                "reason": self.reason}
+        return {"history": [list(h) for h in self.history], "wall_s": list(self.wall_s),
+                "stopped_step": self.stopped_step, "reason": self.reason}
 
     def load_state_dict(self, state_dict: dict) -> None:
         self.history = [(int(s), float(v)) for s, v in state_dict.get("history", [])]
+        self.wall_s = [float(w) for w in state_dict.get("wall_s", [0.0] * len(self.history))]
         self.stopped_step = state_dict.get("stopped_step")
         self.reason = state_dict.get("reason", "")
 

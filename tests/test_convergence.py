@@ -87,6 +87,8 @@ def test_the_callback_stops_a_fit_and_records_why_and_when(tmp_path):
     assert trainer.global_step == 40 and record["outcome"] == "converged" and record["step"] == 40
     assert [h["step"] for h in record["history"]] == [10, 20, 30, 40] and "0.20%" in record["reason"]
     assert record["max_steps"] == 200 and record["monitor"] == "val/l1"
+    walls = [h["wall_s"] for h in record["history"]]
+    assert walls == sorted(walls) and walls[0] > 0  # training wall time at each validation: the curves' x axis
 
 
 def test_the_budget_ends_a_run_that_keeps_improving(tmp_path):
@@ -147,5 +149,7 @@ def test_a_run_resumed_after_the_stop_does_not_train_on(tmp_path):
         return trainer
 
     assert fit().global_step == 40
+    walls = [h["wall_s"] for h in read_record(tmp_path)["history"]]
     assert fit(str(tmp_path / "ckpt" / "last.ckpt")).global_step == 40
-    assert read_record(tmp_path)["step"] == 40
+    record = read_record(tmp_path)
+    assert record["step"] == 40 and [h["wall_s"] for h in record["history"]] == walls  # restored, not restarted
