@@ -163,7 +163,7 @@ def test_reference_path_is_checked():
 def test_accuracy_section_compares_fp32_and_fast_rows(tmp_path):
     import pandas as pd
 
-    from nvs.bench import accuracy_section
+    from nvs.bench.report import accuracy_section
 
     path = tmp_path / "precision.csv"
     assert "run `python -m nvs.sweep sweeps/precision.yaml`" in "\n".join(accuracy_section(path))

@@ -5,4 +5,3 @@ the authors' code), ``reference`` (their code imported from the path given), ``r
 ``report`` (Markdown), ``profile`` (torch.profiler of a training step); ``__main__`` is the CLI.
 """
 
-from nvs.bench.report import accuracy_section  # noqa: F401 - the precision study's section, read by tests

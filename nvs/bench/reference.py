@@ -40,7 +40,7 @@ def check_path(path: str | Path) -> Path:
 
 def _vgg16_features() -> nn.Sequential:
     """torchvision's VGG16 ``features`` layout (conv, ReLU ..., max-pool after each block) with nvs's weights."""
-    from nvs.models.vgg import load_weights
+    from nvs.perceptual import load_weights
 
     w = load_weights()
     layers, i = [], 0
