@@ -30,6 +30,7 @@ from nvs.build import build_module
 from nvs.config_check import model_mismatch
 from nvs.errors import UserError
 from nvs.module import NVSModule
+from nvs.runs import REFERENCE_MODELS
 
 
 class CheckpointWriteError(UserError):
@@ -136,7 +137,7 @@ def restore_run_config(cfg: DictConfig) -> tuple[DictConfig, dict | None]:
     elif cfg.get("model") is not None:
         run = OmegaConf.create({"model": OmegaConf.to_container(cfg.model), **_REFERENCE_RUN})
     else:
-        raise UserError("give ckpt_path=... (a trained model) or model=copy_source|gt_warp (no training)")
+        raise UserError("give ckpt_path=... (a trained model) or model=" + "|".join(REFERENCE_MODELS) + " (no training)")
     data_cli = cfg.get("data") or {}
     if data_cli.get("format") is not None:  # a data=<name> group: that dataset config
         data = OmegaConf.to_container(cfg.data, resolve=False)

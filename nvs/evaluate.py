@@ -1,6 +1,7 @@
 """python -m nvs.evaluate ckpt_path=... [data=...]: test metrics (metrics.json) and per-image CSV of a checkpoint.
 
-Reference models that need no training are evaluated without a checkpoint: ``model=copy_source`` or ``model=gt_warp``.
+Reference models that need no training are evaluated without a checkpoint: ``model=copy_source``, ``gt_warp``,
+``mean_depth`` or ``gt_plane`` (nvs.runs.REFERENCE_MODELS).
 """
 
 from __future__ import annotations

@@ -11,8 +11,9 @@ from pathlib import Path
 
 from nvs.errors import UserError
 
-# Models evaluated without training (nvs.evaluate model=...): the floor and the ceiling of every table.
-REFERENCE_MODELS = ("copy_source", "gt_warp")
+# Models evaluated without training (nvs.evaluate model=...), the floors and ceilings of every table: copying the
+# source, the ground-truth warp, the constant depth at the training views' mean, each test image's ground-truth plane.
+REFERENCE_MODELS = ("copy_source", "gt_warp", "mean_depth", "gt_plane")
 
 
 @dataclass

@@ -10,6 +10,7 @@ import torch
 from omegaconf import OmegaConf
 
 from nvs.build import build_module, parameter_count
+from nvs.runs import REFERENCE_MODELS
 from tests.conftest import CONF_DIR, compose_train, fixture_batch
 
 REPO = Path(__file__).resolve().parents[1]
@@ -100,7 +101,7 @@ def test_sizes_the_network_cannot_take_are_one_clear_error(size, tmp_path):
         build_module(cfg)
 
 
-@pytest.mark.parametrize("model", [m for m in _options("model") if m not in ("copy_source", "gt_warp")])
+@pytest.mark.parametrize("model", [m for m in _options("model") if m not in REFERENCE_MODELS])
 def test_bare_model_option_builds_with_its_own_losses(model, tmp_path):
     """`python -m nvs.train model=<name>` works without naming an experiment: each model brings its loss list."""
     cfg = compose_train([f"model={model}", f"paths.root_dir={tmp_path}"])

@@ -5,9 +5,7 @@ from __future__ import annotations
 from omegaconf import DictConfig
 
 from nvs.compose import CONF_DIR, compose
-
-# Reference rows evaluated without training; they have no parameters to stress.
-NO_TRAINING_MODELS = ("copy_source", "gt_warp")
+from nvs.runs import REFERENCE_MODELS as NO_TRAINING_MODELS  # evaluated without training: nothing to stress
 
 
 def train_config(overrides: list[str], work: str) -> DictConfig:

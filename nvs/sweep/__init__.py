@@ -13,7 +13,7 @@ from __future__ import annotations
 import importlib
 
 _WHERE = {
-    "study": ("REFERENCE_MODELS", "PLANE_REFERENCES", "REFERENCES", "TABLES", "Row", "Study", "StudyFile",
+    "study": ("REFERENCE_MODELS", "REFERENCES", "TABLES", "Row", "Study", "StudyFile",
               "load_study"),
     "jobs": ("JOB_RECORD", "NEUTRAL_KEYS", "Job", "Status", "row_overrides", "row_seeds", "compose_job",
              "config_fingerprint", "config_digest", "config_changes", "job_key", "job_status", "plan", "to_launch",

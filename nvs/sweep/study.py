@@ -20,10 +20,7 @@ from nvs.errors import UserError
 from nvs.metric_spec import METRICS
 from nvs.runs import REFERENCE_MODELS  # the one list of the models evaluated without training
 
-# The depth floors (nvs/models/reference_planes.py), also evaluated without training: the constant depth at the
-# training views' mean, and each test image's plane at its ground-truth mean (an oracle).
-PLANE_REFERENCES = ("mean_depth", "gt_plane")
-REFERENCES = (*REFERENCE_MODELS, *PLANE_REFERENCES)
+REFERENCES = REFERENCE_MODELS
 from nvs.sweep.schema import Source, build
 
 # Table layouts: 'metrics' (the paper's tables: metrics, params, costs, paper numbers) or 'cost' (cost against error,
