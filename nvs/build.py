@@ -56,6 +56,7 @@ def build_module(cfg: DictConfig) -> NVSModule:
     optimizer = _instantiate(OmegaConf.create(OmegaConf.to_container(cfg.optim, resolve=True)), "optim")
     scheduler = _instantiate(cfg.scheduler, "scheduler") if cfg.get("scheduler") else None
     module = NVSModule(net, losses, optimizer, nonfinite=cfg.nonfinite, channels_last=bool(cfg.channels_last),
+                       compile_step=bool(cfg.get("compile", False)),
                        model_name=str(cfg.model.get("name", "nvs")), scheduler=scheduler)
     module.run_config = OmegaConf.to_container(cfg, resolve=True)
     return module

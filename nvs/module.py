@@ -31,11 +31,14 @@ class NVSModule(L.LightningModule):
         nonfinite: 'stop' raises on a NaN/Inf loss (the last good checkpoint stays), 'skip' drops that step.
         channels_last: run convolutions in channels_last memory format.
         val_metrics: image metrics logged on the validation split (model selection uses ``val/l1``).
+        compile_step: ``torch.compile`` the training step's forward and losses together (backward follows the
+            compiled graph). A loss list with a critic (adversarial) keeps eager, and a compile that fails falls back
+            to eager: each with one logged line.
     """
 
     def __init__(self, net: nn.Module, losses: dict[str, nn.Module], optimizer: Callable,
                  nonfinite: str = "stop", channels_last: bool = False, val_metrics=("l1", "ssim_paper"),
-                 model_name: str = "nvs", scheduler: Callable | None = None):
+                 model_name: str = "nvs", scheduler: Callable | None = None, compile_step: bool = False):
         super().__init__()
         if nonfinite not in ("stop", "skip"):
             raise UserError(f"nonfinite={nonfinite!r}: expected 'stop' or 'skip'")
@@ -55,6 +58,14 @@ class NVSModule(L.LightningModule):
         self._constant_terms_warned = False
         if channels_last:
             self.net.to(memory_format=torch.channels_last)
+        self._compiled: Callable | None = None
+        if compile_step:
+            critics = [name for name, term in losses.items() if hasattr(term, "update_critic")]
+            if critics:
+                rank_zero_warn(f"compile=true: the training step stays eager (loss term(s) {', '.join(critics)} "
+                               "step a critic between the forward and the losses)")
+            else:
+                self._compiled = torch.compile(self._forward_loss)
 
     def on_fit_start(self) -> None:
         if not self.losses:
@@ -72,15 +83,30 @@ class NVSModule(L.LightningModule):
     def forward(self, batch: Batch, needs: frozenset[str] = frozenset()):
         return self.net(self._prepare(batch), needs)
 
+    def _forward_loss(self, batch: Batch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        return self.loss(self(batch, self.train_needs), batch)
+
+    def _compiled_loss(self, batch: Batch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        try:
+            return self._compiled(batch)
+        except Exception as err:  # noqa: BLE001 - any compiler failure: the eager step computes the same loss
+            self._compiled = None
+            rank_zero_warn(f"compile=true: torch.compile failed ({err.__class__.__name__}: "
+                           f"{str(err).splitlines()[0][:160] if str(err) else ''}); training continues eager")
+            return self._forward_loss(batch)
+
     def training_step(self, batch: Batch, batch_idx: int):
-        out = self(batch, self.train_needs)
         bs = batch["src"].shape[0]
-        # Terms that own a critic (adversarial) train it first, on detached predictions, with its own optimiser.
-        for name, term in self.losses.items():
-            if hasattr(term, "update_critic"):
-                for key, value in term.update_critic(out, batch).items():
-                    self.log(f"train/{name}/{key}", value, batch_size=bs)
-        total, values = self.loss(out, batch)
+        if self._compiled is not None:
+            total, values = self._compiled_loss(batch)
+        else:
+            out = self(batch, self.train_needs)
+            # Terms that own a critic (adversarial) train it first, on detached predictions, with its own optimiser.
+            for name, term in self.losses.items():
+                if hasattr(term, "update_critic"):
+                    for key, value in term.update_critic(out, batch).items():
+                        self.log(f"train/{name}/{key}", value, batch_size=bs)
+            total, values = self.loss(out, batch)
         for name, value in values.items():
             self.log(f"train/loss/{name}", value.detach(), batch_size=bs)
         if not self._constant_terms_warned:  # checked on the first step only

@@ -248,3 +248,51 @@ def test_demo_trains_the_authors_network(tmp_path):
     code = dict(compose_train().fidelity)
     assert cfg.model.name == "nvs" and dict(cfg.fidelity) == {**code, "vgg_size": None}  # the one budget choice
     assert list(cfg.loss) == ["recon", "vgg", "depth_consistency", "edge_smooth", "warp"]
+
+
+def _module(tmp_path, *overrides):
+    cfg = compose_train([f"paths.root_dir={tmp_path}", "data.size=64", *overrides])
+    cfg.paths.output_dir = str(tmp_path)
+    OmegaConf.resolve(cfg)
+    return build_module(cfg)
+
+
+def test_compile_failure_falls_back_to_eager_with_one_warning(tmp_path, monkeypatch):
+    """compile=true: a compiler that fails costs one logged line; the step's loss is the eager one."""
+    eager = _module(tmp_path, "loss=[recon,warp]")
+    calls = []
+
+    def broken_compile(fn, *args, **kwargs):
+        def run(*a, **k):
+            calls.append(1)
+            raise RuntimeError("backend exploded\nsecond line")
+        return run
+
+    monkeypatch.setattr(torch, "compile", broken_compile)
+    torch.manual_seed(0)
+    compiled = _module(tmp_path, "loss=[recon,warp]", "compile=true")
+    compiled.load_state_dict(eager.state_dict())
+    batch = fixture_batch()
+    with pytest.warns(UserWarning, match=r"compile=true: torch.compile failed \(RuntimeError: backend exploded\); "
+                                         r"training continues eager"):
+        first = compiled.training_step(dict(batch), 0)
+    second = compiled.training_step(dict(batch), 1)  # no second attempt, no second warning
+    assert calls == [1]
+    assert torch.equal(first, eager.training_step(dict(batch), 0)) and torch.equal(first, second)
+
+
+def test_compile_with_a_critic_stays_eager_and_says_so(tmp_path, monkeypatch):
+    monkeypatch.setattr(torch, "compile", lambda fn, *a, **k: pytest.fail("a critic's step must not be compiled"))
+    with pytest.warns(UserWarning, match=r"compile=true: the training step stays eager \(loss term\(s\) adversarial"):
+        module = _module(tmp_path, "experiment=sun_chairs", "compile=true")
+    assert module._compiled is None
+
+
+@pytest.mark.slow
+def test_compiled_step_computes_the_eager_loss(tmp_path):
+    eager = _module(tmp_path, "loss=[recon,warp]", "data.size=64")
+    compiled = _module(tmp_path, "loss=[recon,warp]", "compile=true")
+    compiled.load_state_dict(eager.state_dict())
+    batch = fixture_batch()
+    a, b = eager.training_step(dict(batch), 0), compiled.training_step(dict(batch), 0)
+    assert compiled._compiled is not None and torch.allclose(a, b, rtol=1e-4, atol=1e-6)
