@@ -23,9 +23,10 @@ from nvs.runs import REFERENCE_MODELS  # the one list of the models evaluated wi
 REFERENCES = REFERENCE_MODELS
 from nvs.sweep.schema import Source, build
 
-# Table layouts: 'metrics' (the paper's tables: metrics, params, costs, paper numbers) or 'cost' (cost against error,
-# the cheapest row within tables.PICK_L1_TOLERANCE of the best non-oracle L1 marked).
-TABLES = ("metrics", "cost")
+# Table layouts: 'metrics' (the paper's tables: metrics, params, costs, paper numbers), 'cost' (cost against error,
+# the cheapest row within tables.PICK_L1_TOLERANCE of the best non-oracle L1 marked) or 'convergence' (the metrics
+# tables after each job's validation curve under the stopping rule, and <stem>.png: nvs.sweep.convergence_report).
+TABLES = ("metrics", "cost", "convergence")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
 

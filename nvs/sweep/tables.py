@@ -6,11 +6,12 @@ from __future__ import annotations
 import collections
 from pathlib import Path
 
-from nvs.atomic import write_text
+from nvs.atomic import write_bytes, write_text
 from nvs.metric_spec import IMAGE_METRICS, SPECS
 from nvs.provenance import git_sha, utc_now
 from nvs.sweep.bootstrap import LEVEL, RESAMPLES, Gap, paired_gap, seed_mean, verdict
 from nvs.sweep.collect import SKIP_LEVELS, collect, render_csv, summarize
+from nvs.sweep.convergence_report import convergence_tables, curves_png
 from nvs.sweep.jobs import Job
 from nvs.sweep.study import Study
 
@@ -72,6 +73,9 @@ def render_markdown(study: Study, records: list[dict], provenance: dict) -> str:
     groups: dict[str | None, list[dict]] = {}
     for r in rows:
         groups.setdefault(r["data"] if study.group_by == "data" else None, []).append(r)
+    if study.table == "convergence":
+        lines += [f"![validation L1 against steps and wall time]({study.results_stem}.png)", "",
+                  *convergence_tables(records, study.steps)]
     if study.table == "cost":
         lines += _cost_tables(groups, present)
     else:
@@ -271,4 +275,6 @@ def write_results(study: Study, jobs: list[Job], results_dir: str | Path, comman
     csv_path, md_path = results_dir / f"{study.results_stem}.csv", results_dir / f"{study.results_stem}.md"
     write_text(csv_path, render_csv(records))
     write_text(md_path, render_markdown(study, records, provenance(records, command)))
+    if study.table == "convergence" and (png := curves_png(records)) is not None:
+        write_bytes(results_dir / f"{study.results_stem}.png", png)
     return csv_path, md_path
