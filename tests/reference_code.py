@@ -13,7 +13,7 @@ from types import SimpleNamespace
 
 import torch
 
-from nvs.bench import reference as bench_reference
+import nvs.bench.reference as bench_reference
 
 REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "reference" / "warped-skipconnection-nvs"
 

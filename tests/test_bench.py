@@ -10,7 +10,7 @@ import pytest
 import torch
 
 import reference_code as rc
-from nvs.bench import measure
+import nvs.bench.measure as measure
 from nvs.compose import compose
 from nvs.errors import UserError
 

@@ -472,15 +472,20 @@ def _sweep(*args):
                           timeout=900)
 
 
-@pytest.mark.slow
-def test_tiny_sweep_end_to_end_then_rerun_launches_nothing(objects_root, tmp_path):
+def _tiny_study(tmp_path, objects_root, steps: int, overrides: list[str], references: list[dict]):
+    """tiny.yaml: one trained row (the full model's network, recon only) on the fixture chairs plus ``references``."""
     study = tmp_path / "tiny.yaml"
     study.write_text(json.dumps({
-        "name": "tiny", "seeds": [0], "size": 64, "steps": 2,
+        "name": "tiny", "seeds": [0], "size": 64, "steps": steps,
         "overrides": [f"data.root={objects_root}", "trainer.val_check_interval=2", "data.loader.batch_size=2",
-                      "trainer.limit_val_batches=1", "trainer.enable_progress_bar=false"],
-        "rows": [{"name": "recon_only", "experiment": "nvs_chairs", "overrides": ["loss=[recon]"]},
-                 {"name": "copy", "reference": "copy_source", "data": "chairs"}]}))
+                      "trainer.limit_val_batches=1", "trainer.enable_progress_bar=false", *overrides],
+        "rows": [{"name": "recon_only", "experiment": "nvs_chairs", "overrides": ["loss=[recon]"]}, *references]}))
+    return study
+
+
+@pytest.mark.slow
+def test_tiny_sweep_end_to_end_then_rerun_launches_nothing(objects_root, tmp_path):
+    study = _tiny_study(tmp_path, objects_root, 2, [], [{"name": "copy", "reference": "copy_source", "data": "chairs"}])
     runs, results = tmp_path / "runs", tmp_path / "results"
     args = [str(study), "--runs", str(runs), "--results", str(results)]
     res = _sweep(*args)
@@ -734,15 +739,10 @@ def test_the_stopping_rule_record_reaches_the_csv_the_header_and_the_export(fabr
 @pytest.mark.slow
 def test_a_tiny_study_with_the_stopping_rule_and_floors_is_rebuilt_from_its_committed_files(objects_root, tmp_path):
     """Run, export, remove the run directories (a fresh clone), --collect-only: the same rows and values."""
-    study = tmp_path / "tiny.yaml"
-    study.write_text(json.dumps({
-        "name": "tiny", "seeds": [0], "size": 64, "steps": 8,
-        "overrides": [f"data.root={objects_root}", "trainer.val_check_interval=2", "data.loader.batch_size=2",
-                      "trainer.limit_val_batches=1", "trainer.enable_progress_bar=false", "callbacks=convergence",
-                      "callbacks.convergence.min_improvement=10.0"],
-        "rows": [{"name": "recon_only", "experiment": "nvs_chairs", "overrides": ["loss=[recon]"]},
-                 {"name": "floor", "reference": "mean_depth", "data": "chairs"},
-                 {"name": "plane", "reference": "gt_plane", "data": "chairs", "oracle": True}]}))
+    stop = ["callbacks=convergence", "callbacks.convergence.min_improvement=10.0"]
+    study = _tiny_study(tmp_path, objects_root, 8, stop,
+                        [{"name": "floor", "reference": "mean_depth", "data": "chairs"},
+                         {"name": "plane", "reference": "gt_plane", "data": "chairs", "oracle": True}])
     runs, results = tmp_path / "runs", tmp_path / "results"
     res = _sweep(str(study), "--runs", str(runs), "--results", str(results), "--export-jobs")
     assert res.returncode == 0, res.stderr[-3000:]

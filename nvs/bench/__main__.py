@@ -14,7 +14,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from nvs.atomic import write_json, write_text
-from nvs.bench import measure
+import nvs.bench.measure as measure
 from nvs.bench.contenders import MODES
 from nvs.bench.reference import check_path
 from nvs.compose import CONF_DIR

@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 from torch.profiler import ProfilerActivity, profile
 
-from nvs.bench import measure
+import nvs.bench.measure as measure
 from nvs.bench.contenders import make_batches, nvs_contender
 from nvs.provenance import markdown as provenance_markdown
 

@@ -6,7 +6,7 @@ import gc
 
 import torch
 
-from nvs.bench import measure
+import nvs.bench.measure as measure
 from nvs.bench.contenders import Batches, Contender, make_batches, nvs_contender, reference_contender
 from nvs.bench.reference import SIZE as REFERENCE_SIZE
 
