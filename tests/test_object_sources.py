@@ -144,6 +144,90 @@ def test_identical_geometry_is_rendered_once(tmp_path):
     assert meta2["views_rendered"] == 0 and not calls and meta2["duplicates"] == meta["duplicates"]
 
 
+_WORKER_SCRIPT = """
+import sys
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from nvs.data.render.objects import render_objects
+from nvs.data.render.scene import Part
+from nvs.data.render.sources import ModelSource
+
+shapes = {"box-a": (1.0, 0.6, 0.8), "box-b": (1.0, 0.6, 0.8), "box-c": (1.0, 0.3, 0.8), "box-d": (0.5, 1, 1),
+          "box-e": (0.7, 0.7, 0.2)}
+
+
+def loader(extents):
+    def load():
+        b = trimesh.creation.box(extents=extents)
+        return [Part(np.asarray(b.vertices), np.asarray(b.faces), None, None, np.ones(4))]
+    return load
+
+
+def broken():
+    raise ValueError("corrupt mesh")
+
+
+sources = [ModelSource(i, i, "test", "CC0", "test", loader(e)) for i, e in shapes.items()]
+sources.append(ModelSource("box-x", "x", "test", "CC0", "test", broken))
+out, workers = Path(sys.argv[1]), int(sys.argv[2])
+render_objects("cars", out / "all", size=16, supersample=1, progress=False, sources=sources, pairs_per_model=2,
+               workers=workers)
+render_objects("cars", out / "few", size=16, supersample=1, progress=False, sources=sources, pairs_per_model=2,
+               max_models=3, workers=workers)
+"""
+
+
+@pytest.mark.render
+def test_worker_processes_write_the_same_dataset(tmp_path):
+    """workers=2 (forked processes) writes the same files as workers=1: the duplicate a worker rendered ahead is
+    removed, a broken model is named and skipped, a max_models sample is the same. Each render runs in a fresh
+    process (a process that has rendered before cannot fork renderers; the next test covers that case)."""
+    import filecmp
+    import json
+    import subprocess
+    import sys
+
+    script = tmp_path / "render_boxes.py"
+    script.write_text(_WORKER_SCRIPT)
+    for w in (1, 2):
+        subprocess.run([sys.executable, str(script), str(tmp_path / f"w{w}"), str(w)], check=True, timeout=120,
+                       capture_output=True)
+    for part in ("all", "few"):
+        a, b = tmp_path / "w1" / part, tmp_path / "w2" / part
+        metas = [json.loads((d / "meta.json").read_text()) for d in (a, b)]
+        for key in ("models", "duplicates", "failed"):
+            assert metas[0][key] == metas[1][key], (part, key)
+        files = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file())
+        assert files == sorted(p.relative_to(b) for p in b.rglob("*") if p.is_file())
+        for f in files:
+            if f.name != "meta.json":  # render_seconds and views_rendered differ
+                assert filecmp.cmp(a / f, b / f, shallow=False), f
+    full = json.loads((tmp_path / "w2" / "all" / "meta.json").read_text())
+    assert full["duplicates"] == [{"id": "box-b", "same_geometry_as": "box-a"}]
+    assert [f["id"] for f in full["failed"]] == ["box-x"]
+    assert not list((tmp_path / "w2" / "all" / "images").glob("box-b_*"))
+    assert len(json.loads((tmp_path / "w2" / "few" / "meta.json").read_text())["models"]) == 3
+
+
+@pytest.mark.render
+def test_workers_in_a_process_that_has_rendered_run_in_process(tmp_path, monkeypatch, capsys):
+    """Forking after an offscreen context was opened hangs Mesa, so such a process renders in-process and says so."""
+    from nvs.data.render import object_jobs
+    from nvs.data.render.objects import render_objects
+    from nvs.data.render.sources import ModelSource
+
+    monkeypatch.setattr(object_jobs, "contexts_opened", lambda: 1)
+    shapes = {"box-a": (1.0, 0.6, 0.8), "box-c": (1.0, 0.3, 0.8), "box-d": (0.5, 1, 1)}
+    sources = [ModelSource(i, i, "test", "CC0", "test", (lambda e=e: [_box(*e)])) for i, e in shapes.items()]
+    meta = render_objects("cars", tmp_path, size=16, supersample=1, progress=False, sources=sources,
+                          pairs_per_model=2, workers=2)
+    assert [m["id"] for m in meta["models"]] == sorted(shapes)
+    assert "rendering in-process" in capsys.readouterr().out
+
+
 def _extracted_or_skip(module):
     if not module.ROOT.is_dir():
         pytest.skip(f"{module.PACKAGE} not extracted: run scripts/install_object_assets.sh")

@@ -1,6 +1,7 @@
 """`python -m nvs.data.render <chairs|cars|drive|contact> [key=value ...]`.
 
 Objects: size=256 out=data/<category>_<size> seed=0 max_models=N supersample=3 pairs_per_model=30
+         workers=<cores, at most 2> (models rendered in that many processes; same files)
 Drive:   size=256 out=data/drive_<size> seed=0 sequences=10 frames=200 supersample=3
          sources=stk:2,torcs camera=kitti|wide
 Contact: out=docs/contact_sheet.png chairs=DIR cars=DIR drive=DIR models=4 size=128
@@ -9,15 +10,17 @@ Sheets:  root=DIR (a rendered chairs/cars root) out=docs/contact size=64: one sh
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
 from nvs.errors import UserError, exits_cleanly
 
-_INT_KEYS = {"size", "seed", "max_models", "sequences", "frames", "supersample", "pairs_per_model", "models"}
+_INT_KEYS = {"size", "seed", "max_models", "sequences", "frames", "supersample", "pairs_per_model", "models",
+             "workers"}
 _KEYS = {
-    "chairs": {"size", "out", "seed", "max_models", "supersample", "pairs_per_model"},
-    "cars": {"size", "out", "seed", "max_models", "supersample", "pairs_per_model"},
+    "chairs": {"size", "out", "seed", "max_models", "supersample", "pairs_per_model", "workers"},
+    "cars": {"size", "out", "seed", "max_models", "supersample", "pairs_per_model", "workers"},
     "drive": {"size", "out", "seed", "sequences", "frames", "supersample", "sources", "camera"},
     "contact": {"out", "chairs", "cars", "drive", "models", "size"},
     "sheets": {"root", "out", "size"},
@@ -39,6 +42,8 @@ def parse(argv: list[str]) -> tuple[str, dict]:
                 raise UserError(f"{key} must be an integer, got {value!r}") from None
         else:
             opts[key] = value
+    if opts.get("workers", 1) < 1:
+        raise UserError(f"workers must be >= 1, got {opts['workers']}")
     if "supersample" in opts and opts["supersample"] % 2 == 0:
         raise UserError("supersample must be odd (depth is the centre sample of each block)")
     return what, opts
@@ -78,6 +83,7 @@ def main(argv: list[str] | None = None) -> None:
     else:
         from nvs.data.render.objects import render_objects
 
+        opts.setdefault("workers", min(2, os.cpu_count() or 1))
         render_objects(what, out, size=size, **opts)
     print(f"wrote {out}")
 

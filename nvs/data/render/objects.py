@@ -7,58 +7,21 @@ minus c: x right, y down, z away from that camera, so view (0, 0) shows the mode
 
 from __future__ import annotations
 
-import hashlib
 import random
 import time
-import traceback
 from pathlib import Path
-
-import numpy as np
-from scipy.spatial.transform import Rotation
 
 from nvs.atomic import write_json, write_text
 from nvs.data.render.assets import COPYRIGHT, ModelSource, category_models
-from nvs.data.render.output import write_credits, write_depth, write_png
-from nvs.data.render.scene import Part, Renderer, bounds, scaled_K, supersampled, to_pyrender, transform_parts
+# the per-model view geometry lives with the render job; re-exported for the dataset's readers and tests
+from nvs.data.render.object_jobs import (AZIMUTHS, CENTRE, ELEVATIONS, K256, Job, Result, Runner,  # noqa: F401
+                                         camera_to_object, geometry_signature, is_done, normalised,
+                                         view_stems)
+from nvs.data.render.output import write_credits
+from nvs.data.render.scene import scaled_K
 
-AZIMUTHS = tuple(range(0, 360, 20))
-ELEVATIONS = (0, 10, 20)
-CENTRE = np.array([0.0, 0.0, 2.0])
-K256 = np.array([[480.0, 0.0, 128.0], [0.0, 480.0, 128.0], [0.0, 0.0, 1.0]])
 CATEGORY_NAME = {"chairs": "chair", "cars": "car"}
-# Canonical model frame (y up, front towards +z) -> object frame (y down, z away from the az=0 camera).
-CANON_TO_OBJECT = np.diag([1.0, -1.0, -1.0])
 MAX_AZIMUTH_GAP = 40
-
-
-def view_rotation(az: float, el: float) -> np.ndarray:
-    return Rotation.from_euler("xyz", [-el, az, 0.0], degrees=True).as_matrix()
-
-
-def camera_to_object(az: float, el: float) -> np.ndarray:
-    """T_obj_cam (4,4): the OpenCV camera of view (az, el) in the object frame (inverse of X -> R^T X + c)."""
-    R = view_rotation(az, el)
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = -R @ CENTRE
-    return T
-
-
-def normalised(parts: list[Part]) -> list[Part]:
-    """Canonical parts -> object frame, unit bounding box (largest side 1) centred at the origin."""
-    lo, hi = bounds(parts)
-    scale = 1.0 / float(np.max(hi - lo))
-    centre = (lo + hi) / 2
-    return transform_parts(parts, CANON_TO_OBJECT * scale, -CANON_TO_OBJECT @ centre * scale)
-
-
-def view_stems(model: str) -> list[tuple[str, int, int]]:
-    return [(f"{model}_{az}_{el}", az, el) for az in AZIMUTHS for el in ELEVATIONS]
-
-
-def is_done(root: Path, model: str) -> bool:
-    return all((root / "images" / f"{s}.png").is_file() and (root / "depth" / f"{s}.npy").is_file()
-               for s, _, _ in view_stems(model))
 
 
 def split_models(models: list[str], seed: int) -> dict[str, list[str]]:
@@ -94,102 +57,81 @@ def eval_pairs(test_models: list[str], per_model: int, seed: int) -> list[tuple[
     return pairs
 
 
-def geometry_signature(parts: list[Part]) -> str:
-    """Hash of a normalised model's vertex set on a 1e-4 grid: equal for identical geometry, whatever the texture."""
-    pts = np.concatenate([p.positions[p.faces.reshape(-1)] for p in parts if len(p.faces)])
-    grid = np.unique(np.round(pts * 1e4).astype(np.int64), axis=0)
-    return hashlib.sha1(grid.tobytes()).hexdigest()
-
-
-def _signature_path(root: Path, model: str) -> Path:
-    return root / "signatures" / f"{model}.txt"
-
-
-def _report_failure(failed: list[tuple[str, str]], source: ModelSource, err: Exception, progress: bool) -> None:
+def _report_failure(failed: list[tuple[str, str]], source: ModelSource, res: Result, progress: bool) -> None:
     from tqdm import tqdm
 
-    msg = f"{err.__class__.__name__}: {err}"
-    failed.append((source.id, msg))
-    tqdm.write(f"skipped model {source.id} ({source.name}): {msg}")
-    if progress:
-        tqdm.write(traceback.format_exc(limit=2))
+    failed.append((source.id, res.error))
+    tqdm.write(f"skipped model {source.id} ({source.name}): {res.error}")
+    if progress and res.trace:
+        tqdm.write(res.trace)
 
 
-def _render_model(renderer: Renderer, root: Path, model: str, parts: list[Part], factor: int) -> int:
-    """Render the 54 views of one normalised model; returns the number of views written."""
-    renderer.set_mesh(to_pyrender(parts))
-    for stem, az, el in view_stems(model):
-        rgb, depth = supersampled(renderer, camera_to_object(az, el), factor)
-        write_depth(root / "depth" / f"{stem}.npy", depth)
-        write_png(root / "images" / f"{stem}.png", rgb)
-    return len(AZIMUTHS) * len(ELEVATIONS)
+def _remove_views(root: Path, model: str) -> None:
+    for stem, _, _ in view_stems(model):
+        (root / "images" / f"{stem}.png").unlink(missing_ok=True)
+        (root / "depth" / f"{stem}.npy").unlink(missing_ok=True)
 
 
 def render_objects(category: str, out: Path, size: int = 256, seed: int = 0, max_models: int | None = None,
                    sources: list[ModelSource] | None = None, supersample: int = 3, pairs_per_model: int = 30,
-                   progress: bool = True) -> dict:
-    """Render a category into `out` (ShapeNet-renders format plus depth/, id_val/id_test, meta.json, CREDITS)."""
+                   progress: bool = True, workers: int = 1) -> dict:
+    """Render a category into `out` (ShapeNet-renders format plus depth/, id_val/id_test, meta.json, CREDITS).
+    `workers` > 1 renders models in that many forked processes (same files; see nvs.data.render.object_jobs)."""
     from tqdm import tqdm
 
     out = Path(out)
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers={workers!r}: expected an integer >= 1")
     sources = category_models(category) if sources is None else sources
+    by_id = {m.id: m for m in sources}
     order = sorted(sources, key=lambda m: m.id)
     random.Random(seed).shuffle(order)  # max_models takes a seeded sample; failures are replaced by the next
     K = scaled_K(K256, size)
-    renderer = Renderer(size * supersample, scaled_K(K256, size * supersample), znear=0.5, zfar=4.0, lit=True)
     used: list[ModelSource] = []
     failed: list[tuple[str, str]] = []
     duplicates: dict[str, str] = {}  # model -> the model with identical geometry that is used instead
     skipped = views = 0
     t0 = time.perf_counter()
     fresh: set[str] = set()  # rendered by this run
+    runner = Runner(sources, min(workers, len(sources)) if sources else 1)
     try:
         # Pass 1, in id order: geometry signatures (cached per model); of identical geometries the first, i.e. the
         # smallest, id is kept, so the kept model does not depend on the seed, max_models or the other sources
         # present. A full render (no max_models) renders each kept model here, while it is loaded.
         keep: dict[str, str] = {}
-        for source in tqdm(sorted(order, key=lambda m: m.id), desc=f"render {category} {size}px", unit="model",
-                           disable=not progress):
-            sig = None
-            try:
-                sig_file = _signature_path(out, source.id)
-                parts = None
-                if sig_file.is_file():
-                    sig = sig_file.read_text().strip()
-                else:
-                    parts = normalised(source.load())
-                    sig = geometry_signature(parts)
-                    write_text(sig_file, sig + "\n")
-                if sig in keep:
-                    duplicates[source.id] = keep[sig]
-                    continue
-                keep[sig] = source.id
-                if max_models is None and not is_done(out, source.id):
-                    parts = normalised(source.load()) if parts is None else parts
-                    views += _render_model(renderer, out, source.id, parts, supersample)
-                    fresh.add(source.id)
-            except Exception as err:  # a broken model must not stop the dataset; it is named and skipped
-                if sig is not None and keep.get(sig) == source.id:
-                    del keep[sig]  # an identical model later in id order takes its place
-                _report_failure(failed, source, err, progress)
+        job = Job(out, size, supersample, render=max_models is None)
+        results = runner.map(sorted(by_id), job, kept=lambda: frozenset(keep))
+        for res in tqdm(results, total=len(by_id), desc=f"render {category} {size}px", unit="model",
+                        disable=not progress):
+            if res.error is not None:
+                _report_failure(failed, by_id[res.id], res, progress)  # an identical model later takes its place
+            elif res.sig in keep:
+                duplicates[res.id] = keep[res.sig]
+                if res.views:  # rendered ahead by a worker: not part of the dataset
+                    _remove_views(out, res.id)
+            else:
+                keep[res.sig] = res.id
+                views += res.views
+                fresh.update([res.id] if res.views else [])
         kept = set(keep.values())
         want = len(kept) if max_models is None else min(max_models, len(kept))
         # Pass 2: the kept models in the seeded order until `want` are rendered (max_models takes a seeded sample).
-        for source in order:
-            if len(used) >= want:
-                break
-            if source.id not in kept:
-                continue
-            try:
-                if is_done(out, source.id):
-                    skipped += source.id not in fresh
-                else:
-                    views += _render_model(renderer, out, source.id, normalised(source.load()), supersample)
-                used.append(source)
-            except Exception as err:
-                _report_failure(failed, source, err, progress)
+        candidates = [m.id for m in order if m.id in kept]
+        render = Job(out, size, supersample, render=True)
+        while len(used) < want and candidates:
+            batch, candidates = candidates[:want - len(used)], candidates[want - len(used):]
+            todo = [i for i in batch if not is_done(out, i)]
+            done = {r.id: r for r in runner.map(todo, render)}
+            for i in batch:
+                res = done.get(i)
+                if res is not None and res.error is not None:
+                    _report_failure(failed, by_id[i], res, progress)
+                    continue
+                skipped += res is None and i not in fresh
+                views += res.views if res is not None else 0
+                used.append(by_id[i])
     finally:
-        renderer.close()
+        runner.close()
     seconds = time.perf_counter() - t0
     ids = sorted(m.id for m in used)
     if len(ids) < 3:

@@ -128,11 +128,21 @@ def to_pyrender(parts: list[Part]) -> pyrender.Mesh:
     return pyrender.Mesh(prims)
 
 
+_CONTEXTS_OPENED = 0
+
+
+def contexts_opened() -> int:
+    """Offscreen contexts this process has opened (a process that has opened one cannot fork renderers safely)."""
+    return _CONTEXTS_OPENED
+
+
 class Renderer:
     """One offscreen context of size x size rendering a pinhole camera given in OpenCV conventions."""
 
     def __init__(self, size: int, K: np.ndarray, znear: float, zfar: float, bg_color=(1.0, 1.0, 1.0),
                  lit: bool = True):
+        global _CONTEXTS_OPENED
+        _CONTEXTS_OPENED += 1
         self.size = size
         self.lit = lit
         self._r = pyrender.OffscreenRenderer(size, size)
