@@ -758,3 +758,16 @@ def test_a_tiny_study_with_the_stopping_rule_and_floors_is_rebuilt_from_its_comm
     assert again.returncode == 0, again.stderr[-3000:]
     assert "3 done; launching 0" in again.stderr and (results / "tiny.csv").read_text() == first
     assert not list((results / "jobs").rglob("*.ckpt"))
+
+
+def test_rows_launches_only_the_matching_rows_and_names_a_glob_that_matches_none(tmp_path, capsys):
+    """--rows splits a study across sessions: only the matching rows are launched (here: planned by --dry-run)."""
+    from nvs.errors import UserError
+    from nvs.sweep.__main__ import run
+
+    assert run(["sweeps/convergence.yaml", "--dry-run", "--runs", str(tmp_path), "--rows", "chen_*,gt_plane_cars"]) == 0
+    err = capsys.readouterr().err
+    launched = {line.split()[2] for line in err.splitlines() if line.startswith("[sweep] -> ")}
+    assert launched == {"chen_chairs_conv", "chen_cars_conv", "chen_drive_conv", "gt_plane_cars"}
+    with pytest.raises(UserError, match="'sun_\\*x' matches no row of sweeps/convergence.yaml"):
+        run(["sweeps/convergence.yaml", "--dry-run", "--runs", str(tmp_path), "--rows", "chen_*,sun_*x"])

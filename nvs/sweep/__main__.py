@@ -60,6 +60,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--export-jobs", action="store_true", help="copy every finished job's small files (never "
                    "checkpoints) to <results>/jobs/<scale>/, where later runs and fresh clones find them")
     p.add_argument("--dry-run", action="store_true", help="print the plan and the commands; launch and write nothing")
+    p.add_argument("--rows", metavar="GLOBS", help="launch only the rows whose name matches one of these comma-separated "
+                   "globs, e.g. 'chen_*,*_chairs' (a study split across sessions or machines); the tables still "
+                   "list every row")
     p.add_argument("--skip-failed", action="store_true", help="do not retry jobs that failed before")
     p.add_argument("--force", action="store_true", help="re-run every job (old directories go to <root>/.stale)")
     p.add_argument("--figures", action="store_true", help="also draw the study's figures (nvs.figures) into "
@@ -75,6 +78,19 @@ def _print_plan(jobs: list[Job], launching: list[Job]) -> None:
         mark = "->" if j in launching else "  "
         print(f"[sweep] {mark} {j.row.name:<24} s{j.seed:<3} {j.status:<10} {j.dir}"
               + (f"  ({j.error})" if j.error else ""), file=sys.stderr)
+
+
+def _selected_rows(study, globs: str) -> set[str]:
+    """Names of the study's rows that match the comma-separated globs; a glob that matches none is an error."""
+    import fnmatch
+
+    names, chosen = [r.name for r in study.rows], set()
+    for pattern in (g.strip() for g in globs.split(",")):
+        hits = fnmatch.filter(names, pattern) if pattern else []
+        if not hits:
+            raise UserError(f"--rows {globs!r}: {pattern!r} matches no row of {study.path}; rows: {', '.join(names)}")
+        chosen.update(hits)
+    return chosen
 
 
 def run(argv: list[str] | None = None) -> int:
@@ -96,6 +112,8 @@ def run(argv: list[str] | None = None) -> int:
     jobs = plan(study, root, extra, exported)
     launching = [] if args.collect_only is not None else to_launch(jobs, retry_failed=not args.skip_failed,
                                                                    force=args.force)
+    if args.rows is not None:
+        launching = [j for j in launching if j.row.name in _selected_rows(study, args.rows)]
     _print_plan(jobs, launching)
     if args.dry_run:
         launch = Launch.local(args.jobs, args.threads, extra)
