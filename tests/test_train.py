@@ -246,8 +246,10 @@ def test_conv0_norm_option_keeps_colour_levels_in_the_full_resolution_skip():
 def test_demo_trains_the_authors_network(tmp_path):
     cfg = compose_train(["experiment=demo"])
     code = dict(compose_train().fidelity)
-    assert cfg.model.name == "nvs" and dict(cfg.fidelity) == {**code, "vgg_size": None}  # the one budget choice
+    assert cfg.model.name == "nvs" and dict(cfg.fidelity) == {**code, "vgg_size": None}  # budget choice 1
     assert list(cfg.loss) == ["recon", "vgg", "depth_consistency", "edge_smooth", "warp"]
+    # budget choice 2: one cycle to 5e-4 over exactly the run's steps (the paper: constant 1e-4)
+    assert cfg.scheduler.max_lr == 5e-4 and cfg.scheduler.total_steps == cfg.trainer.max_steps == 900
 
 
 def _module(tmp_path, *overrides):
