@@ -183,3 +183,15 @@ def test_the_sweep_and_the_figures_command_lines_import_no_other_command_line():
     assert _loaded_after("import nvs.figures", clis) == ["nvs.figures"]
     # what the figures library loads when it rebuilds a run
     assert _loaded_after("import nvs.paper_figures, nvs.checkpoints, nvs.build, nvs.compose", clis) == []
+
+
+def test_a_reference_row_takes_the_data_overrides_it_reads_not_the_validation_ones(tmp_path):
+    """Validating on more pairs leaves a reference job as it was; a data override it reads changes its key."""
+    def keys(overrides):
+        study = load_study(_write(tmp_path, {**STUDY, "overrides": overrides}))
+        return {j.row.name: j.key for j in plan(study, tmp_path / "runs")}
+
+    base = keys([])
+    more_val = keys(["data.loader.val_pairs_per_model=24"])
+    assert more_val["copy"] == base["copy"] and more_val["full"] != base["full"]
+    assert keys(["data.train_fraction=0.5"])["copy"] != base["copy"]

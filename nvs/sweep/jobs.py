@@ -97,6 +97,15 @@ def _is_data(override: str) -> bool:
     return _key_of(override).startswith("data.")
 
 
+# Data keys that shape only the validation split's loading; a reference row (evaluated on the test split, its
+# training mean taken over the training split) does not read them, so they stay out of its key.
+VALIDATION_ONLY_KEYS = ("data.loader.val_pairs_per_model",)
+
+
+def _reaches_reference(override: str) -> bool:
+    return _is_data(override) and _key_of(override) not in VALIDATION_ONLY_KEYS
+
+
 def _is_neutral(override: str) -> bool:
     key = _key_of(override)
     return any(key == n or key.startswith(n + ".") or key.startswith(n + "/") for n in NEUTRAL_KEYS)
@@ -106,8 +115,9 @@ def row_overrides(study: Study, row: Row, extra: tuple[str, ...] = ()) -> list[s
     """The Hydra overrides that define a row's jobs (seed excluded), in the order they are applied."""
     config_extra = [o for o in extra if not is_hydra(o)]
     if row.reference:
-        # Reference rows take the study's data settings (so they see the same test pairs), nothing else.
-        shared = [o for o in list(study.overrides) + config_extra if _is_data(o)]
+        # Reference rows take the study's data settings (so they see the same test pairs), nothing else; not the
+        # validation-only ones, so a study that validates on more pairs shares its reference jobs with the others.
+        shared = [o for o in list(study.overrides) + config_extra if _reaches_reference(o)]
         return [f"model={row.reference}", f"data={row.data}", *shared, f"data.size={study.size}",
                 *row.overrides]
     head = [f"experiment={row.experiment}"] if row.experiment else []
