@@ -64,13 +64,18 @@ def test_each_study_carries_every_reference_row_per_dataset():
 def test_runs_shared_between_studies_have_the_same_config(tmp_path):
     """A run name used by several studies (chen_chairs, nvs_chairs, ...) must be one job, not a silent conflict."""
     keys: dict[str, tuple[str, str, str]] = {}
+    users: dict[str, set[str]] = {}
     for path in STUDIES:
         study = sweep.load_study(path)
         for job in sweep.plan(study, tmp_path):
+            users.setdefault(job.dir.name, set()).add(study.name)
             seen = keys.setdefault(job.dir.name, (job.key, job.digest, study.name))
             assert seen[0] == job.key, f"{job.dir.name}: {seen[2]} and {study.name} define it differently"
             assert seen[1] == job.digest, f"{job.dir.name}: {seen[2]} and {study.name} compose it differently"
-    assert "nvs_chairs_s0" in keys and "chen_chairs_s0" in keys
+    # Seed 0 of the tables' method rows is the convergence study's job: trained once, reused by every table.
+    assert users["nvs_chairs_conv_s0"] == {"convergence", "ablation", "depth", "comparison_objects", "fidelity",
+                                           "data_scale"}
+    assert users["chen_drive_conv_s0"] == {"convergence", "comparison_drive"}
 
 
 def test_ablation_rows_switch_what_they_say():

@@ -195,3 +195,12 @@ def test_a_reference_row_takes_the_data_overrides_it_reads_not_the_validation_on
     more_val = keys(["data.loader.val_pairs_per_model=24"])
     assert more_val["copy"] == base["copy"] and more_val["full"] != base["full"]
     assert keys(["data.train_fraction=0.5"])["copy"] != base["copy"]
+
+
+def test_the_plan_composes_each_seed_as_hydra_does(tmp_path):
+    """The plan composes a row once and sets the seed on a copy; that is the config composing with seed=<n> gives."""
+    study = load_study(_write(tmp_path, {**STUDY, "seeds": [0, 3]}))
+    for job in plan(study, tmp_path / "runs"):
+        direct = sweep_jobs.compose_job(job.kind, [*job.overrides, f"seed={job.seed}"])
+        assert job.fingerprint == sweep_jobs.config_fingerprint(direct), (job.row.name, job.seed)
+    assert {j.seed for j in plan(study, tmp_path / "runs")} == {0, 3}

@@ -253,8 +253,14 @@ def plan(study: Study, root: str | Path, extra: tuple[str, ...] = (), exported: 
     jobs = []
     for row in study.rows:
         overrides = row_overrides(study, row, extra)
+        composed = None
         for seed in row_seeds(study, row):
-            cfg = compose_job(row.kind, [*overrides, f"seed={seed}"])
+            # One composition per row: the seed is a plain value (interpolations that read it resolve later), so
+            # setting it on a copy gives the config that composing with seed=<n> gives.
+            if composed is None:
+                composed = compose_job(row.kind, [*overrides, f"seed={seed}"])
+            cfg = composed.copy()
+            cfg.seed = seed
             job = Job(study=study.name, row=row, seed=seed, dir=root / f"{row.run}_s{seed}", overrides=overrides,
                       key=job_key(row.kind, overrides, seed), fingerprint=config_fingerprint(cfg),
                       data=str(cfg.data.get("name") or row.data))
