@@ -778,3 +778,28 @@ def test_rows_launches_only_the_matching_rows_and_names_a_glob_that_matches_none
     assert launched == {(r, s) for r in ("chen", "noskip") for s in ("s0", "s1")} | {("copy", "s0")}
     with pytest.raises(UserError, match=f"'ful\\*x' matches no row of {path}; rows: full, chen, noskip, copy"):
         run([str(path), "--dry-run", "--runs", str(tmp_path / "runs"), "--rows", "chen,ful*x"])
+
+
+def test_goals_compare_each_trained_row_with_the_floors_and_their_interval(tmp_path):
+    n = 30  # 10 test models x 3 pairs
+    copy = _per_image(tmp_path, "copy", [0.20 + 0.01 * (k % 5) for k in range(n)])
+    good = _per_image(tmp_path, "good", [0.10 + 0.01 * (k % 5) for k in range(n)])  # ~45% below copying
+    close = _per_image(tmp_path, "close", [0.18 + 0.01 * (k % 5) for k in range(n)])  # ~9% below
+    # 25% below on average, +-0.04 by model: the interval holds the goal
+    edge = _per_image(tmp_path, "edge", [0.165 + 0.01 * (k % 5) + (0.04 if (k // 3) % 2 else -0.04) for k in range(n)])
+
+    def row(name, d, kind="train", reference=None):
+        r = _ordered_row(name, [d], 0.1)
+        return {**r, "label": name, "kind": kind, "reference": reference, "oracle": False, "paper": {},
+                "depth_l1": (None, None)}
+
+    rows = [row("good", good), row("close", close), row("edge", edge),
+            row("copy", copy, kind="reference", reference="copy_source")]
+    lines = sweep.goals(rows)
+    assert lines[0].startswith("Goals of the converged studies")
+    by_row = {ln.split(":")[0][2:]: ln for ln in lines[2:] if ln}
+    assert set(by_row) == {"good", "close", "edge"}
+    assert "L1 0.1200 against copying the source 0.2200: -45.5% [-45.5%, -45.5%]" in by_row["good"]
+    assert by_row["good"].endswith("**met**") and by_row["close"].endswith("**not met**")
+    assert by_row["edge"].endswith("**unresolved**"), by_row["edge"]
+    assert sweep.goals(rows[:3]) == []  # no floor in the table: nothing to say

@@ -23,7 +23,7 @@ _WHERE = {
                "_interrupt"),
     # (the function collect is nvs.sweep.collect.collect: the attribute nvs.sweep.collect is its module)
     "collect": ("CSV_COLUMNS", "COSTS", "SKIP_LEVELS", "SKIP_FRACTIONS", "render_csv", "mean_std", "summarize"),
-    "tables": ("PICK_COST", "PICK_L1_TOLERANCE", "orderings", "pick_cheapest", "render_markdown",
+    "tables": ("GOALS", "PICK_COST", "PICK_L1_TOLERANCE", "goals", "orderings", "pick_cheapest", "render_markdown",
                "provenance", "write_results"),
     "bootstrap": ("Gap", "group_of", "paired_gap", "seed_mean", "verdict"),
     "__main__": ("run", "main"),

@@ -122,7 +122,8 @@ def summarize(study: Study, records: list[dict]) -> list[dict]:
     for row in study.rows:
         recs = [r for r in records if r["row"] == row.name]
         done = [r for r in recs if r["status"] == Status.DONE]
-        s = {"row": row.name, "label": row.label, "kind": row.kind, "n_done": len(done), "n_jobs": len(recs),
+        s = {"row": row.name, "label": row.label, "kind": row.kind, "reference": row.reference,
+             "n_done": len(done), "n_jobs": len(recs),
              "data": next((r["data"] for r in recs if r["data"]), row.data), "paper": row.paper,
              "oracle": row.oracle, "notes": _notes(recs), "dirs": [r["dir"] for r in done if r.get("dir")]}
         for k in (*METRICS, "params", "train_wall_s", *COSTS, *SKIP_FRACTIONS):
