@@ -148,7 +148,7 @@ def test_records_from_before_override_keys_are_judged_by_their_config(tmp_path, 
     _conf_changes(monkeypatch, lambda cfg: setattr(cfg.model, "new_switch", False))
     assert all(j.status == Status.DONE for j in plan(study, root))
     monkeypatch.undo()
-    _conf_changes(monkeypatch, lambda cfg: setattr(cfg, "seed", 7))
+    _conf_changes(monkeypatch, lambda cfg: setattr(cfg.data, "max_delta_azimuth", 7))  # a default changed
     assert all(j.status == Status.STALE for j in plan(study, root))
 
 
@@ -204,3 +204,35 @@ def test_the_plan_composes_each_seed_as_hydra_does(tmp_path):
         direct = sweep_jobs.compose_job(job.kind, [*job.overrides, f"seed={job.seed}"])
         assert job.fingerprint == sweep_jobs.config_fingerprint(direct), (job.row.name, job.seed)
     assert {j.seed for j in plan(study, tmp_path / "runs")} == {0, 3}
+
+
+def test_a_study_is_never_continued_on_another_render_of_its_data(tmp_path, objects_root):
+    """Finished jobs measured on one test set, this machine's data giving another: one error before any launch,
+    naming the job, both test sets and the data root. The same test set launches, and the header names it."""
+    from nvs.build import build_data
+    from nvs.sweep.testset import check_launch, job_test_set, local_test_set, signature
+
+    cfg = sweep_jobs.compose_job("train", ["experiment=nvs_chairs", f"data.root={objects_root}", "data.size=64"])
+    fingerprint = sweep_jobs.config_fingerprint(cfg)
+    here = local_test_set(fingerprint)
+    pairs = build_data(cfg).test_pairs()
+    assert here == signature(pairs) and here.pairs == len(pairs) > 0
+
+    def finished(name, rows):
+        d = tmp_path / name
+        d.mkdir()
+        (d / "test_per_image.csv").write_text("id_src,id_tgt,l1\n" + "".join(f"{a},{b},0.1\n" for a, b in rows))
+        return sweep_jobs.Job(study="s", row=None, seed=0, dir=d, overrides=[], data="chairs")
+
+    new = sweep_jobs.Job(study="s", row=None, seed=1, dir=tmp_path / "new", overrides=[], data="chairs",
+                         fingerprint=fingerprint)
+    same = finished("same_s0", list(reversed(pairs)))  # order does not matter
+    assert job_test_set(same.dir) == here
+    check_launch([same], [new])
+    other = finished("other_s0", pairs[:-1])
+    with pytest.raises(UserError) as err:
+        check_launch([same, other], [new])
+    msg = str(err.value)
+    assert msg.startswith(f"{other.dir}: measured on {len(pairs) - 1} test pairs") and str(objects_root) in msg
+    assert f"gives {here}" in msg and "\n" not in msg
+    check_launch([other], [])  # nothing to launch: nothing to check

@@ -211,25 +211,33 @@ class NVSDataModule(L.LightningDataModule):
                     if problem:
                         raise DataError(list_path, f"{what}: {problem}: {image}", line)
 
+    def test_pairs(self) -> list[tuple[str, str]]:
+        """The (source, target) view ids the test split evaluates, in order: the ids test_per_image.csv lists.
+        Reads the list files only (no image)."""
+        if isinstance(self.fmt, ObjectsFormat):
+            pairs = self.fmt.test_pairs()
+        else:
+            pairs = self.fmt.pairs("test", self.loader.val_fraction, self.seed)
+        if self.loader.limit_test_pairs:
+            pairs = pairs[: self.loader.limit_test_pairs]
+        return [(str(a), str(b)) for a, b in pairs]
+
     def _build(self, split: str, cache: ViewCache) -> PairDataset:
         lo = self.loader
-        if isinstance(self.fmt, ObjectsFormat):
-            if split == "test":
-                pairs = self.fmt.test_pairs()
-            else:
-                models = self.fmt.split_models(split, lo.val_fraction, self.seed)
-                if split == "train":
-                    models = train_subset(models, self.train_fraction, self.seed)
-                    sources = [v for m in models for v in self.fmt.views(m)]
-                    d = self.max_delta_azimuth
-                    return PairDataset(cache, self.camera, sources=sources,
-                                       partner=lambda s, rng: random_partner(s, d, rng), augment=lo.augment)
-                pairs = object_pairs(models, self.fmt, lo.val_pairs_per_model, self.max_delta_azimuth, self.seed)
-        else:
+        if split == "test":
+            return PairDataset(cache, self.camera, pairs=self.test_pairs(), augment=None)
+        if not isinstance(self.fmt, ObjectsFormat):
             pairs = self.fmt.pairs(split, lo.val_fraction, self.seed)
-        if split == "test" and lo.limit_test_pairs:
-            pairs = pairs[: lo.limit_test_pairs]
-        return PairDataset(cache, self.camera, pairs=pairs, augment=lo.augment if split == "train" else None)
+            return PairDataset(cache, self.camera, pairs=pairs, augment=lo.augment if split == "train" else None)
+        models = self.fmt.split_models(split, lo.val_fraction, self.seed)
+        if split == "val":
+            pairs = object_pairs(models, self.fmt, lo.val_pairs_per_model, self.max_delta_azimuth, self.seed)
+            return PairDataset(cache, self.camera, pairs=pairs, augment=None)
+        models = train_subset(models, self.train_fraction, self.seed)
+        sources = [v for m in models for v in self.fmt.views(m)]
+        d = self.max_delta_azimuth
+        return PairDataset(cache, self.camera, sources=sources, partner=lambda s, rng: random_partner(s, d, rng),
+                           augment=lo.augment)
 
     def _loader(self, split: str, shuffle: bool, batch_size: int) -> DataLoader:
         g = torch.Generator().manual_seed(self.seed)

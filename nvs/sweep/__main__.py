@@ -38,6 +38,7 @@ from nvs.sweep.jobs import Job, Status, plan, prepare_job_dir, to_launch
 from nvs.sweep.launch import Launch, _cores, _interrupt, launch_row, multirun_command
 from nvs.sweep.study import load_study
 from nvs.sweep.tables import write_results
+from nvs.sweep.testset import check_launch
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -115,6 +116,8 @@ def run(argv: list[str] | None = None) -> int:
     if args.rows is not None:
         launching = [j for j in launching if j.row.name in _selected_rows(study, args.rows)]
     _print_plan(jobs, launching)
+    if launching and not args.force:  # never continue a study on another render of its data
+        check_launch([j for j in jobs if j.status == Status.DONE], launching)
     if args.dry_run:
         launch = Launch.local(args.jobs, args.threads, extra)
         for row in study.rows:

@@ -14,6 +14,7 @@ from nvs.sweep.collect import SKIP_LEVELS, collect, render_csv, summarize
 from nvs.sweep.convergence_report import convergence_tables, curves_png
 from nvs.sweep.jobs import Job
 from nvs.sweep.study import Study
+from nvs.sweep.testset import job_test_set
 
 PICK_L1_TOLERANCE = 0.01
 PICK_COST = "eval_forward_ms_per_image"
@@ -58,6 +59,7 @@ def render_markdown(study: Study, records: list[dict], provenance: dict) -> str:
         f"| steps | {_steps_cell(study, records)} |",
         f"| seeds | {', '.join(str(s) for s in study.seeds)} (reference rows: {study.seeds[0]}) |",
         f"| jobs | {', '.join(f'{n} {s}' for s, n in sorted(counts.items()))} |",
+        f"| test sets | {_test_sets_cell(records)} |",
         "",
     ]
     if paper_metrics:
@@ -92,6 +94,24 @@ def _steps_cell(study: Study, records: list[dict]) -> str:
     text = f"{study.steps} at most (callbacks=convergence; why each job stopped: the CSV's stop_reason); " \
            f"{len(stopped)} of {len(ruled)} trained jobs converged earlier"
     return text + (f", at steps {stopped[0]}–{stopped[-1]}" if stopped else "")
+
+
+def _test_sets_cell(records: list[dict]) -> str:
+    """Per dataset, the test set its finished jobs were measured on (``nvs.sweep.testset``); where they differ, each
+    set with its jobs, flagged: such rows were not measured on the same data and do not compare."""
+    by_data: dict[str, dict] = {}
+    for r in records:
+        if r["status"] == "done" and r.get("dir") and r.get("data"):
+            ts = job_test_set(r["dir"])
+            if ts is not None:
+                by_data.setdefault(r["data"], {}).setdefault(ts, []).append(Path(r["dir"]).name)
+    cells = []
+    for data, sets in by_data.items():
+        if len(sets) == 1:
+            cells.append(f"{data}: {next(iter(sets))}")
+        else:
+            cells.append(f"**{data}: mixed**, " + "; ".join(f"{ts} ({', '.join(sorted(d))})" for ts, d in sets.items()))
+    return _md_cell("; ".join(cells)) or "—"
 
 
 def _label(r: dict) -> str:
@@ -154,6 +174,10 @@ def goals(rows: list[dict]) -> list[str]:
                 if x["row"] not in per_image:
                     per_image[x["row"]] = seed_mean(list(x.get("dirs") or []))
             base = floor[metric][0]
+            if base <= 0:  # an exact floor (e.g. a scene whose depth is one plane): no relative gap to reach
+                parts.append(f"{SPECS[metric].label} {r[metric][0]:.4f} against {what} {base:.4f}: the floor is "
+                             "exact, no goal")
+                continue
             gap = paired_gap(per_image[r["row"]], per_image[floor["row"]], metric)
             rel = (gap.diff if gap.diff is not None else r[metric][0] - base) / base
             text = f"{SPECS[metric].label} {r[metric][0]:.4f} against {what} {base:.4f}: {100 * rel:+.1f}%"
