@@ -19,8 +19,11 @@ setup: .setup-stamp
 demo: setup
 	$(PYTHON) -m nvs.demo
 
+# Two workers, one per core (TEST_WORKERS=0 runs in this process, as a debugger wants).
+TEST_WORKERS ?= 2
+
 test: setup
-	$(PYTHON) -m pytest -q -m "not slow and not gpu"
+	$(PYTHON) -m pytest -q -m "not slow and not gpu" -n $(TEST_WORKERS)
 
 test-all: setup
 	$(PYTHON) -m pytest -q -m "not gpu"

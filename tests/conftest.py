@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
+import torch
 
 from nvs.compose import CONF_DIR as _CONF_DIR
 from nvs.compose import compose
@@ -14,6 +16,14 @@ CONF_DIR = str(_CONF_DIR)
 # The fixture writers and the batch builder live in the package (nvs.stress uses them too); the test-facing names stay.
 make_objects_root = write_objects_root
 make_scenes_root = write_scenes_root
+
+
+def pytest_configure(config):
+    # `make test` runs two pytest-xdist workers, one per core: each computes with one thread (and so do the command
+    # lines it starts), so that the two never oversubscribe the cores.
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = "1"
+        torch.set_num_threads(1)
 
 
 @pytest.fixture(scope="session")

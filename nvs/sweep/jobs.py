@@ -97,13 +97,8 @@ def _is_data(override: str) -> bool:
     return _key_of(override).startswith("data.")
 
 
-# Data keys that shape only the validation split's loading; a reference row (evaluated on the test split, its
-# training mean taken over the training split) does not read them, so they stay out of its key.
+# Data keys a reference row (tested on the test split, its mean over the training split) never reads: not in its key.
 VALIDATION_ONLY_KEYS = ("data.loader.val_pairs_per_model",)
-
-
-def _reaches_reference(override: str) -> bool:
-    return _is_data(override) and _key_of(override) not in VALIDATION_ONLY_KEYS
 
 
 def _is_neutral(override: str) -> bool:
@@ -115,9 +110,9 @@ def row_overrides(study: Study, row: Row, extra: tuple[str, ...] = ()) -> list[s
     """The Hydra overrides that define a row's jobs (seed excluded), in the order they are applied."""
     config_extra = [o for o in extra if not is_hydra(o)]
     if row.reference:
-        # Reference rows take the study's data settings (so they see the same test pairs), nothing else; not the
-        # validation-only ones, so a study that validates on more pairs shares its reference jobs with the others.
-        shared = [o for o in list(study.overrides) + config_extra if _reaches_reference(o)]
+        # Reference rows take the study's data settings (the same test pairs), but not the validation-only ones.
+        shared = [o for o in list(study.overrides) + config_extra
+                  if _is_data(o) and _key_of(o) not in VALIDATION_ONLY_KEYS]
         return [f"model={row.reference}", f"data={row.data}", *shared, f"data.size={study.size}",
                 *row.overrides]
     head = [f"experiment={row.experiment}"] if row.experiment else []
@@ -253,12 +248,10 @@ def plan(study: Study, root: str | Path, extra: tuple[str, ...] = (), exported: 
     jobs = []
     for row in study.rows:
         overrides = row_overrides(study, row, extra)
-        composed = None
-        for seed in row_seeds(study, row):
-            # One composition per row: the seed is a plain value (interpolations that read it resolve later), so
-            # setting it on a copy gives the config that composing with seed=<n> gives.
-            if composed is None:
-                composed = compose_job(row.kind, [*overrides, f"seed={seed}"])
+        seeds = row_seeds(study, row)
+        # One composition per row: setting the seed on a copy gives what composing with seed=<n> gives.
+        composed = compose_job(row.kind, [*overrides, f"seed={seeds[0]}"]) if seeds else None
+        for seed in seeds:
             cfg = composed.copy()
             cfg.seed = seed
             job = Job(study=study.name, row=row, seed=seed, dir=root / f"{row.run}_s{seed}", overrides=overrides,

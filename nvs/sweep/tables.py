@@ -14,7 +14,7 @@ from nvs.sweep.collect import SKIP_LEVELS, collect, render_csv, summarize
 from nvs.sweep.convergence_report import convergence_tables, curves_png
 from nvs.sweep.jobs import Job
 from nvs.sweep.study import Study
-from nvs.sweep.testset import job_test_set
+from nvs.sweep.goal_lines import goals, md_cell, test_sets_cell
 
 PICK_L1_TOLERANCE = 0.01
 PICK_COST = "eval_forward_ms_per_image"
@@ -31,10 +31,6 @@ def _fmt_params(n) -> str:
         return "—"
     n = int(n)
     return f"{n / 1e6:.2f}M" if n >= 1e5 else str(n)
-
-
-def _md_cell(text: str) -> str:
-    return text.replace("|", "\\|").replace("\n", " ")
 
 
 def render_markdown(study: Study, records: list[dict], provenance: dict) -> str:
@@ -59,7 +55,7 @@ def render_markdown(study: Study, records: list[dict], provenance: dict) -> str:
         f"| steps | {_steps_cell(study, records)} |",
         f"| seeds | {', '.join(str(s) for s in study.seeds)} (reference rows: {study.seeds[0]}) |",
         f"| jobs | {', '.join(f'{n} {s}' for s, n in sorted(counts.items()))} |",
-        f"| test sets | {_test_sets_cell(records)} |",
+        f"| test sets | {test_sets_cell(records)} |",
         "",
     ]
     if paper_metrics:
@@ -96,26 +92,8 @@ def _steps_cell(study: Study, records: list[dict]) -> str:
     return text + (f", at steps {stopped[0]}–{stopped[-1]}" if stopped else "")
 
 
-def _test_sets_cell(records: list[dict]) -> str:
-    """Per dataset, the test set its finished jobs were measured on (``nvs.sweep.testset``); where they differ, each
-    set with its jobs, flagged: such rows were not measured on the same data and do not compare."""
-    by_data: dict[str, dict] = {}
-    for r in records:
-        if r["status"] == "done" and r.get("dir") and r.get("data"):
-            ts = job_test_set(r["dir"])
-            if ts is not None:
-                by_data.setdefault(r["data"], {}).setdefault(ts, []).append(Path(r["dir"]).name)
-    cells = []
-    for data, sets in by_data.items():
-        if len(sets) == 1:
-            cells.append(f"{data}: {next(iter(sets))}")
-        else:
-            cells.append(f"**{data}: mixed**, " + "; ".join(f"{ts} ({', '.join(sorted(d))})" for ts, d in sets.items()))
-    return _md_cell("; ".join(cells)) or "—"
-
-
 def _label(r: dict) -> str:
-    return _md_cell(r["label"] + (" (reference)" if r["kind"] == "reference" else "")
+    return md_cell(r["label"] + (" (reference)" if r["kind"] == "reference" else "")
                     + (" (oracle)" if r["oracle"] else ""))
 
 
@@ -123,7 +101,7 @@ def _status(r: dict) -> str:
     status = "ok" if not r["notes"] else "; ".join(r["notes"])
     if any(" failed" in n for n in r["notes"]):
         status = "**FAILED** " + status
-    return _md_cell(status)
+    return md_cell(status)
 
 
 def _metrics_tables(groups: dict[str | None, list[dict]], present: list[str], paper_metrics: list[str]) -> list[str]:
@@ -148,57 +126,6 @@ def _metrics_tables(groups: dict[str | None, list[dict]], present: list[str], pa
         lines += orderings(grows, paper_metrics)
         lines += goals(grows)
     return lines
-
-
-# The converged studies' goals: a trained model's L1 at least 25% below copying the source, its depth L1-all at
-# least 30% below the constant depth at the training mean (the depth floor that reads no test ground truth).
-GOALS = (("l1", "copy_source", 0.25, "copying the source"),
-         ("depth_l1", "mean_depth", 0.30, "the constant-depth floor"))
-
-
-def goals(rows: list[dict]) -> list[str]:
-    """Markdown lines: each trained, non-oracle row against the floors of ``GOALS``, with the paired bootstrap's
-    interval of the relative gap. **met**: the whole interval is at least the goal below the floor; **not met**:
-    the whole interval is short of it; **unresolved**: the interval holds the goal."""
-    floors = {ref: r for r in rows if r["kind"] == "reference" and (ref := r.get("reference"))}
-    trained = [r for r in rows if r["kind"] == "train" and not r["oracle"]]
-    cells: list[str] = []
-    per_image: dict[str, dict] = {}
-    for r in trained:
-        parts = []
-        for metric, ref, goal, what in GOALS:
-            floor = floors.get(ref)
-            if floor is None or floor[metric][0] is None or r[metric][0] is None:
-                continue
-            for x in (r, floor):
-                if x["row"] not in per_image:
-                    per_image[x["row"]] = seed_mean(list(x.get("dirs") or []))
-            base = floor[metric][0]
-            if base <= 0:  # an exact floor (e.g. a scene whose depth is one plane): no relative gap to reach
-                parts.append(f"{SPECS[metric].label} {r[metric][0]:.4f} against {what} {base:.4f}: the floor is "
-                             "exact, no goal")
-                continue
-            gap = paired_gap(per_image[r["row"]], per_image[floor["row"]], metric)
-            rel = (gap.diff if gap.diff is not None else r[metric][0] - base) / base
-            text = f"{SPECS[metric].label} {r[metric][0]:.4f} against {what} {base:.4f}: {100 * rel:+.1f}%"
-            if gap.lo is not None:
-                lo, hi = 100 * gap.lo / base, 100 * gap.hi / base
-                text += f" [{lo:+.1f}%, {hi:+.1f}%]"
-                state = "met" if hi <= -100 * goal else "not met" if lo > -100 * goal else "unresolved"
-            else:
-                state = "met" if rel <= -goal else "not met"
-                text += f" ({gap.why or 'no interval'})"
-            parts.append(f"{text}, goal ≤ −{100 * goal:g}%: **{state}**")
-        if parts:
-            cells.append(f"- {_md_cell(r['label'])}: " + "; ".join(parts))
-    if not cells:
-        return []
-    head = (f"Goals of the converged studies: L1 at least 25% below copying the source, depth L1-all at least 30% "
-            f"below the constant depth at the training mean. Relative gap on the test pairs both rows were tested "
-            f"on, with its {100 * LEVEL:g}% interval from a paired bootstrap over test models (objects) or sequences "
-            f"(scenes), {RESAMPLES} resamples, seeded; **met** / **not met**: the interval lies beyond / short of the "
-            "goal; **unresolved**: it holds the goal.")
-    return [head, "", *cells, ""]
 
 
 def orderings(rows: list[dict], metrics: list[str]) -> list[str]:
@@ -319,12 +246,12 @@ def _cost_tables(groups: dict[str | None, list[dict]], present: list[str]) -> li
 def _pick_sentence(best: dict | None, pick: dict | None, base: dict | None, pct: str) -> str:
     if best is None or pick is None:
         return "No pick: no trained row without ground truth has both an L1 and an eval time yet."
-    head = f"**Pick**: {_md_cell(pick['label'])}, the cheapest at evaluation within {pct} of the best L1 " \
-           f"({best['l1'][0]:.4f}, {_md_cell(best['label'])})"
+    head = f"**Pick**: {md_cell(pick['label'])}, the cheapest at evaluation within {pct} of the best L1 " \
+           f"({best['l1'][0]:.4f}, {md_cell(best['label'])})"
     if base is None or pick is base:
         return head + ": no configuration cheaper than the first row stays within that margin, so nothing can be " \
                       "skipped here at this budget."
-    return head + f": {base[PICK_COST][0] / pick[PICK_COST][0]:.2f}× faster than {_md_cell(base['label'])} at " \
+    return head + f": {base[PICK_COST][0] / pick[PICK_COST][0]:.2f}× faster than {md_cell(base['label'])} at " \
                   f"{100 * (pick['l1'][0] / base['l1'][0] - 1):+.1f}% L1 against it."
 
 

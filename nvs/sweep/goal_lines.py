@@ -1,0 +1,84 @@
+"""The lines a table adds beyond the paper's layout: the converged studies' goals per trained row, and the test sets
+its jobs were measured on."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from nvs.metric_spec import SPECS
+from nvs.sweep.bootstrap import LEVEL, RESAMPLES, paired_gap, seed_mean
+from nvs.sweep.testset import job_test_set
+
+
+def md_cell(text: str) -> str:
+    """Text safe inside a Markdown table cell."""
+    return text.replace("|", "\\|").replace("\n", " ")
+
+
+# The converged studies' goals: a trained model's L1 at least 25% below copying the source, its depth L1-all at
+# least 30% below the constant depth at the training mean (the depth floor that reads no test ground truth).
+GOALS = (("l1", "copy_source", 0.25, "copying the source"),
+         ("depth_l1", "mean_depth", 0.30, "the constant-depth floor"))
+
+
+def goals(rows: list[dict]) -> list[str]:
+    """Markdown lines: each trained, non-oracle row against the floors of ``GOALS``, with the paired bootstrap's
+    interval of the relative gap. **met**: the whole interval is at least the goal below the floor; **not met**:
+    the whole interval is short of it; **unresolved**: the interval holds the goal."""
+    floors = {ref: r for r in rows if r["kind"] == "reference" and (ref := r.get("reference"))}
+    trained = [r for r in rows if r["kind"] == "train" and not r["oracle"]]
+    cells: list[str] = []
+    per_image: dict[str, dict] = {}
+    for r in trained:
+        parts = []
+        for metric, ref, goal, what in GOALS:
+            floor = floors.get(ref)
+            if floor is None or floor[metric][0] is None or r[metric][0] is None:
+                continue
+            for x in (r, floor):
+                if x["row"] not in per_image:
+                    per_image[x["row"]] = seed_mean(list(x.get("dirs") or []))
+            base = floor[metric][0]
+            if base <= 0:  # an exact floor (e.g. a scene whose depth is one plane): no relative gap to reach
+                parts.append(f"{SPECS[metric].label} {r[metric][0]:.4f} against {what} {base:.4f}: the floor is "
+                             "exact, no goal")
+                continue
+            gap = paired_gap(per_image[r["row"]], per_image[floor["row"]], metric)
+            rel = (gap.diff if gap.diff is not None else r[metric][0] - base) / base
+            text = f"{SPECS[metric].label} {r[metric][0]:.4f} against {what} {base:.4f}: {100 * rel:+.1f}%"
+            if gap.lo is not None:
+                lo, hi = 100 * gap.lo / base, 100 * gap.hi / base
+                text += f" [{lo:+.1f}%, {hi:+.1f}%]"
+                state = "met" if hi <= -100 * goal else "not met" if lo > -100 * goal else "unresolved"
+            else:
+                state = "met" if rel <= -goal else "not met"
+                text += f" ({gap.why or 'no interval'})"
+            parts.append(f"{text}, goal ≤ −{100 * goal:g}%: **{state}**")
+        if parts:
+            cells.append(f"- {md_cell(r['label'])}: " + "; ".join(parts))
+    if not cells:
+        return []
+    head = (f"Goals of the converged studies: L1 at least 25% below copying the source, depth L1-all at least 30% "
+            f"below the constant depth at the training mean. Relative gap on the test pairs both rows were tested "
+            f"on, with its {100 * LEVEL:g}% interval from a paired bootstrap over test models (objects) or sequences "
+            f"(scenes), {RESAMPLES} resamples, seeded; **met** / **not met**: the interval lies beyond / short of the "
+            "goal; **unresolved**: it holds the goal.")
+    return [head, "", *cells, ""]
+
+
+def test_sets_cell(records: list[dict]) -> str:
+    """Per dataset, the test set its finished jobs were measured on (``nvs.sweep.testset``); where they differ, each
+    set with its jobs, flagged: such rows were not measured on the same data and do not compare."""
+    by_data: dict[str, dict] = {}
+    for r in records:
+        if r["status"] == "done" and r.get("dir") and r.get("data"):
+            ts = job_test_set(r["dir"])
+            if ts is not None:
+                by_data.setdefault(r["data"], {}).setdefault(ts, []).append(Path(r["dir"]).name)
+    cells = []
+    for data, sets in by_data.items():
+        if len(sets) == 1:
+            cells.append(f"{data}: {next(iter(sets))}")
+        else:
+            cells.append(f"**{data}: mixed**, " + "; ".join(f"{ts} ({', '.join(sorted(d))})" for ts, d in sets.items()))
+    return md_cell("; ".join(cells)) or "—"
