@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import io
+import re
 import sys
 from pathlib import Path
 
@@ -38,6 +39,13 @@ def pareto_front(cost: list[float], error: list[float]) -> list[bool]:
     return on
 
 
+def _scale(row) -> str:
+    match = re.fullmatch(r"(\d+)px_(\d+)steps", Path(str(row["run_dir"])).parent.name)
+    if match:
+        return f"{match[1]}²/{match[2]} steps" + (" at most" if str(row.get("stop", "nan")) != "nan" else "")
+    return _int_text(row["image_size"]) + "²/" + _int_text(row["steps"]) + " steps"
+
+
 def load_rows(csv_paths: list[Path]) -> pd.DataFrame:
     """Mean over finished seeds per (data, run) of the trained rows of the given sweep CSVs."""
     frames = []
@@ -56,8 +64,10 @@ def load_rows(csv_paths: list[Path]) -> pd.DataFrame:
     for cost, _ in COSTS:
         if cost not in df.columns:
             df[cost] = float("nan")  # a CSV from before the column existed: those points are left out of that plot
-    # One series per dataset and scale: train time at 500 steps says nothing next to 1500 steps.
-    scales = df["image_size"].map(_int_text) + "²/" + df["steps"].map(_int_text) + " steps"
+    # One series per dataset and scale: train time at 500 steps says nothing next to 1500 steps. A job's scale is its
+    # study's (the run directory's <size>px_<steps>steps parent): a job that the stopping rule ended early belongs to
+    # its budget's series, not to a series of its own.
+    scales = df.apply(_scale, axis=1)
     if scales.nunique() > 1:
         df = df.assign(data=df["data"] + " @ " + scales)
     # The job directory stem without the seed names a configuration across studies.

@@ -442,12 +442,22 @@ def test_pareto_never_puts_two_scales_on_one_front(fabricated, tmp_path):
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()
         for r in rows:
-            w.writerow(r | {"steps": "100", "run_dir": r["run_dir"] + "_long", "train_wall_s": "1.0"})
+            long_dir = str(Path(r["run_dir"]).parent.with_name("64px_100steps") / Path(r["run_dir"]).name)
+            w.writerow(r | {"steps": "100", "run_dir": long_dir, "train_wall_s": "1.0"})
     agg = pareto.load_rows([results / "fab.csv", other])
     assert set(agg["data"]) == {"chairs @ 64²/10 steps", "chairs @ 64²/100 steps"}
     # each scale has its own front: the fast long run does not knock the short runs off theirs
     short = agg[agg["data"] == "chairs @ 64²/10 steps"]
     assert short["front_l1_train_wall_s"].any()
+    # a job the stopping rule ended early stays in its budget's series
+    with open(other, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]) + ["stop"])
+        w.writeheader()
+        for r in rows:
+            w.writerow(r | {"steps": "7", "stop": "converged", "run_dir": r["run_dir"] + "_ruled"})
+    assert set(pareto.load_rows([other])["data"]) == {"chairs"}  # one scale: no suffix
+    mixed = pareto.load_rows([results / "fab.csv", other])
+    assert set(mixed["data"]) == {"chairs @ 64²/10 steps", "chairs @ 64²/10 steps at most"}
 
 
 def test_pareto_reads_the_paper_studies_by_default(tmp_path):
