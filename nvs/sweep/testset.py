@@ -10,7 +10,6 @@ sorted pairs.
 
 from __future__ import annotations
 
-import csv
 import hashlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,8 +17,7 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from nvs.errors import UserError
-
-PER_IMAGE = "test_per_image.csv"
+from nvs.sweep.bootstrap import PER_IMAGE, read_per_image
 
 
 @dataclass(frozen=True)
@@ -39,11 +37,9 @@ def signature(pairs) -> TestSet:
 
 def job_test_set(job_dir: str | Path) -> TestSet | None:
     """The test set a finished job was measured on, from its per-image CSV (None without one)."""
-    path = Path(job_dir) / PER_IMAGE
-    if not path.is_file():
+    if not (Path(job_dir) / PER_IMAGE).is_file():
         return None
-    with path.open(newline="") as f:
-        return signature((r["id_src"], r["id_tgt"]) for r in csv.DictReader(f) if "id_src" in r and "id_tgt" in r)
+    return signature(read_per_image(Path(job_dir) / PER_IMAGE))
 
 
 def local_test_set(fingerprint: dict) -> TestSet | None:
