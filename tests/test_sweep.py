@@ -229,6 +229,8 @@ def test_paper_numbers_match_the_paper_tables():
     ({"overrides": ["data.size=128"], "rows": [{"name": "a"}]}, "set by the study"),
     ({"table": "fancy", "rows": [{"name": "a"}]}, "table must be one of"),
     ({"rows": [{"name": "a", "oracle": "yes"}]}, "oracle must be true or false"),
+    ({"against": ["c"], "rows": [{"name": "a"}, {"name": "c", "reference": "copy_source", "data": "chairs"}]},
+     r"s.yaml:\d+: against\[0\]: 'c' is not a trained row of the study; trained rows: a"),
 ])
 def test_malformed_study_is_one_clear_error(tmp_path, bad, message):
     path = tmp_path / "s.yaml"
@@ -813,3 +815,30 @@ def test_goals_compare_each_trained_row_with_the_floors_and_their_interval(tmp_p
     assert by_row["good"].endswith("**met**") and by_row["close"].endswith("**not met**")
     assert by_row["edge"].endswith("**unresolved**"), by_row["edge"]
     assert sweep.goals(rows[:3]) == []  # no floor in the table: nothing to say
+
+
+def test_against_compares_every_trained_row_with_the_base_and_its_interval(tmp_path):
+    n = 30  # 10 test models x 3 pairs
+    base = _per_image(tmp_path, "base", [0.20 + 0.01 * (k % 5) for k in range(n)])
+    lower = _per_image(tmp_path, "lower", [0.15 + 0.01 * (k % 5) for k in range(n)])
+    higher = _per_image(tmp_path, "higher", [0.23 + 0.01 * (k % 5) for k in range(n)])
+    # the base +- 0.05 by model: the same mean, a spread that holds zero
+    mixed = _per_image(tmp_path, "mixed", [0.20 + 0.01 * (k % 5) + (0.05 if (k // 3) % 2 else -0.05) for k in range(n)])
+
+    def row(name, d, kind="train"):
+        r = _ordered_row(name, [d], 0.1)
+        return {**r, "label": name.title(), "kind": kind, "reference": None, "oracle": False, "paper": {}}
+
+    rows = [row("lower", lower), row("base", base), row("higher", higher), row("mixed", mixed),
+            row("copy", base, kind="reference")]
+    lines = sweep.against_base(rows, ("absent", "base"), ["l1", "ssim_paper"])
+    assert lines == sweep.against_base(rows, ("absent", "base"), ["l1", "ssim_paper"])  # seeded
+    assert lines[0].startswith("Against Base (`base`): Δ = row − base") and "paired bootstrap" in lines[0]
+    by_row = {ln.split(":")[0][2:]: ln for ln in lines[2:] if ln}
+    assert set(by_row) == {"Lower", "Higher", "Mixed"}  # neither the base nor a reference row
+    assert "L1 0.1700 (↓) Δ -0.05000 [-0.05000, -0.05000] **better**" in by_row["Lower"]
+    assert "SSIM (paper) 0.8300 (↑) Δ +0.05000 [+0.05000, +0.05000] **better**" in by_row["Lower"]
+    assert "L1 0.2500 (↓) Δ +0.03000 [+0.03000, +0.03000] **worse**" in by_row["Higher"]
+    assert "**unresolved**" in by_row["Mixed"] and "**better**" not in by_row["Mixed"]
+    assert sweep.against_base(rows, ("absent",), ["l1"]) == []  # no base in this table: nothing to say
+    assert sweep.against_base(rows, ("copy",), ["l1"]) == []  # a reference row is never a base

@@ -3,7 +3,7 @@
 One module per idea: ``study`` (the typed study-file schema, read by ``schema``), ``jobs`` (a job, its status,
 identity and planning), ``launch`` (Hydra multiruns in a subprocess), ``recorder`` (the Hydra callback inside every
 job), ``collect`` (one record per job, the CSV), ``bootstrap`` (the paired bootstrap over test models), ``testset`` (the
-test set a job was measured on), ``goal_lines`` (the converged studies' goals), ``tables`` (the Markdown tables,
+test set a job was measured on), ``goal_lines`` (the converged studies' goals, rows against a base row), ``tables`` (the Markdown tables,
 orderings against the paper, cost tables) and ``__main__`` (the command line). Names are
 also reachable as ``nvs.sweep.<name>``, loaded on first use, so that importing ``nvs.sweep.recorder`` inside a
 training job loads nothing else.
@@ -24,7 +24,7 @@ _WHERE = {
                "_interrupt"),
     # (the function collect is nvs.sweep.collect.collect: the attribute nvs.sweep.collect is its module)
     "collect": ("CSV_COLUMNS", "COSTS", "SKIP_LEVELS", "SKIP_FRACTIONS", "render_csv", "mean_std", "summarize"),
-    "goal_lines": ("GOALS", "goals", "test_sets_cell"),
+    "goal_lines": ("GOALS", "against_base", "goals", "test_sets_cell"),
     "tables": ("PICK_COST", "PICK_L1_TOLERANCE", "orderings", "pick_cheapest", "render_markdown",
                "provenance", "write_results"),
     "bootstrap": ("Gap", "group_of", "paired_gap", "seed_mean", "verdict"),

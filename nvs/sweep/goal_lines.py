@@ -1,12 +1,12 @@
-"""The lines a table adds beyond the paper's layout: the converged studies' goals per trained row, and the test sets
-its jobs were measured on."""
+"""The lines a table adds beyond the paper's layout: the converged studies' goals per trained row, each trained row
+against a base row of the study (``against:``), and the test sets its jobs were measured on."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 from nvs.metric_spec import SPECS
-from nvs.sweep.bootstrap import LEVEL, RESAMPLES, paired_gap, seed_mean
+from nvs.sweep.bootstrap import LEVEL, RESAMPLES, paired_gap, seed_mean, verdict
 from nvs.sweep.testset import job_test_set
 
 
@@ -63,6 +63,48 @@ def goals(rows: list[dict]) -> list[str]:
             f"on, with its {100 * LEVEL:g}% interval from a paired bootstrap over test models (objects) or sequences "
             f"(scenes), {RESAMPLES} resamples, seeded; **met** / **not met**: the interval lies beyond / short of the "
             "goal; **unresolved**: it holds the goal.")
+    return [head, "", *cells, ""]
+
+
+def against_base(rows: list[dict], bases: tuple[str, ...], metrics: list[str]) -> list[str]:
+    """Markdown lines: every other trained row of one table against its base row (the first of ``bases`` the table
+    holds), per metric, Δ = row − base on the test pairs both were tested on, with the paired bootstrap's interval:
+    **better** / **worse** when the interval lies on one side of zero, **unresolved** when it holds zero. [] when
+    the table holds no base or the base has no results."""
+    base = next((r for name in bases for r in rows if r["row"] == name and r["kind"] == "train"), None)
+    if base is None or all(base[m][0] is None for m in metrics):
+        return []
+    per_image = {base["row"]: seed_mean(list(base.get("dirs") or []))}
+    cells: list[str] = []
+    for r in rows:
+        if r is base or r["kind"] != "train" or all(r[m][0] is None for m in metrics):
+            continue
+        per_image[r["row"]] = seed_mean(list(r.get("dirs") or []))
+        parts = []
+        for m in metrics:
+            if r[m][0] is None or base[m][0] is None:
+                continue
+            spec = SPECS[m]
+            gap = paired_gap(per_image[r["row"]], per_image[base["row"]], m)
+            d = spec.decimals + 1
+            if gap.diff is None:
+                parts.append(f"{spec.label} {r[m][0]:.{spec.decimals}f}: {gap.why}")
+                continue
+            text = f"{spec.label} {r[m][0]:.{spec.decimals}f} ({spec.arrow}) Δ {gap.diff:+.{d}f}"
+            if gap.lo is not None:
+                text += f" [{gap.lo:+.{d}f}, {gap.hi:+.{d}f}]"
+            state = {"agree": "better", "swap": "worse", "unresolved": "unresolved"}[
+                verdict(gap, spec.higher_is_better)]
+            parts.append(f"{text} **{state}**")
+        if parts:
+            cells.append(f"- {md_cell(r['label'])}: " + "; ".join(parts))
+    if not cells:
+        return []
+    head = (f"Against {md_cell(base['label'])} (`{base['row']}`): Δ = row − base on the test pairs both were "
+            f"tested on, with its {100 * LEVEL:g}% interval from a paired bootstrap over test models (objects) or "
+            f"sequences (scenes), {RESAMPLES} resamples, seeded; rows with several seeds use each pair's mean over "
+            "seeds. **better** / **worse**: the interval lies on one side of zero (↓: lower is better, ↑: higher); "
+            "**unresolved**: it holds zero.")
     return [head, "", *cells, ""]
 
 

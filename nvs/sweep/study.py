@@ -70,6 +70,9 @@ class StudyFile:
     metrics: tuple[str, ...] | None = None  # default: every metric
     group_by: Literal["data"] | None = None
     table: Literal[TABLES] = "metrics"
+    # Rows every other trained row of the same table is compared with (the fidelity study: the authors' code); in
+    # each table the first of them that the table holds is the base.
+    against: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -91,6 +94,7 @@ class Study:
     group_by: str | None
     rows: tuple[Row, ...]
     table: str = "metrics"
+    against: tuple[str, ...] = ()
 
     @property
     def scale(self) -> str:
@@ -160,6 +164,11 @@ def load_study(path: str | Path, seeds: list[int] | None = None, size: int | Non
         runs.add(row.run)
     if not spec.rows:
         raise UserError(f"{source.where(('rows',))}: 'rows' is empty")
+    trained = [row.name for row in spec.rows if row.reference is None]
+    for i, base in enumerate(spec.against):
+        if base not in trained:
+            raise UserError(f"{source.where(('against', i))}: '{base}' is not a trained row of the study; "
+                            f"trained rows: {', '.join(trained)}")
     file_seeds = list(range(spec.seeds)) if isinstance(spec.seeds, int) else list(spec.seeds)
     chosen = [int(s) for s in (seeds if seeds is not None else file_seeds)]
     if not chosen or len(set(chosen)) != len(chosen):
@@ -171,4 +180,5 @@ def load_study(path: str | Path, seeds: list[int] | None = None, size: int | Non
         size=int(size if size is not None else spec.size), steps=int(steps if steps is not None else spec.steps),
         default_size=spec.size, default_steps=spec.steps,
         overrides=_check_overrides(source.where(("overrides",)), spec.overrides),
-        metrics=tuple(metrics), group_by=spec.group_by, rows=spec.rows, table=spec.table)
+        metrics=tuple(metrics), group_by=spec.group_by, rows=spec.rows, table=spec.table,
+        against=tuple(spec.against))

@@ -14,7 +14,7 @@ from nvs.sweep.collect import SKIP_LEVELS, collect, render_csv, summarize
 from nvs.sweep.convergence_report import convergence_tables, curves_png
 from nvs.sweep.jobs import Job
 from nvs.sweep.study import Study
-from nvs.sweep.goal_lines import goals, md_cell, test_sets_cell
+from nvs.sweep.goal_lines import against_base, goals, md_cell, test_sets_cell
 
 PICK_L1_TOLERANCE = 0.01
 PICK_COST = "eval_forward_ms_per_image"
@@ -77,7 +77,7 @@ def render_markdown(study: Study, records: list[dict], provenance: dict) -> str:
     if study.table == "cost":
         lines += _cost_tables(groups, present)
     else:
-        lines += _metrics_tables(groups, present, paper_metrics)
+        lines += _metrics_tables(groups, present, paper_metrics, study.against)
     return "\n".join(lines)
 
 
@@ -104,8 +104,10 @@ def _status(r: dict) -> str:
     return md_cell(status)
 
 
-def _metrics_tables(groups: dict[str | None, list[dict]], present: list[str], paper_metrics: list[str]) -> list[str]:
-    """The paper's layout: metrics, parameters, train wall time, eval time per image, the paper's numbers."""
+def _metrics_tables(groups: dict[str | None, list[dict]], present: list[str], paper_metrics: list[str],
+                    against: tuple[str, ...] = ()) -> list[str]:
+    """The paper's layout: metrics, parameters, train wall time, eval time per image, the paper's numbers; under
+    each table the orderings against the paper, the rows against the study's base row (``against``), the goals."""
     paper_titles = [f"Paper {'SSIM' if m == 'ssim_paper' else SPECS[m].label}" for m in paper_metrics]
     header = ["Method", "n", *[f"{SPECS[m].label} {SPECS[m].arrow}" for m in present],
               "Params", "Train (s)", "Eval (ms/img)", *paper_titles, "Status"]
@@ -124,6 +126,7 @@ def _metrics_tables(groups: dict[str | None, list[dict]], present: list[str], pa
             lines.append("| " + " | ".join(cells) + " |")
         lines.append("")
         lines += orderings(grows, paper_metrics)
+        lines += against_base(grows, against, present)
         lines += goals(grows)
     return lines
 
