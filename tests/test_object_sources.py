@@ -190,11 +190,16 @@ def test_worker_processes_write_the_same_dataset(tmp_path):
     import subprocess
     import sys
 
+    import os
+    from pathlib import Path
+
     script = tmp_path / "render_boxes.py"
     script.write_text(_WORKER_SCRIPT)
+    # the script lives outside the checkout: put this checkout on its path, whatever the installed nvs points at
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
     for w in (1, 2):
         subprocess.run([sys.executable, str(script), str(tmp_path / f"w{w}"), str(w)], check=True, timeout=120,
-                       capture_output=True)
+                       capture_output=True, env=env)
     for part in ("all", "few"):
         a, b = tmp_path / "w1" / part, tmp_path / "w2" / part
         metas = [json.loads((d / "meta.json").read_text()) for d in (a, b)]
