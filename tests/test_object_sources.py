@@ -187,10 +187,9 @@ def test_worker_processes_write_the_same_dataset(tmp_path):
     process (a process that has rendered before cannot fork renderers; the next test covers that case)."""
     import filecmp
     import json
+    import os
     import subprocess
     import sys
-
-    import os
     from pathlib import Path
 
     script = tmp_path / "render_boxes.py"
