@@ -41,7 +41,9 @@ def build_data(cfg: DictConfig) -> NVSDataModule:
         raise UserError(f"config 'data': {err}") from None
 
 
-def build_module(cfg: DictConfig) -> NVSModule:
+def build_module(cfg: DictConfig, channels_last: bool | None = None) -> NVSModule:
+    """The run's module; ``channels_last``: the layout chosen for this run (None: ``cfg.channels_last``, where
+    ``auto`` asks nvs.precision)."""
     try:
         fidelity.check(OmegaConf.to_container(cfg.fidelity, resolve=True) if cfg.get("fidelity") else None)
     except fidelity.FidelityError as err:
@@ -55,11 +57,26 @@ def build_module(cfg: DictConfig) -> NVSModule:
     check_losses(str(cfg.model.get("name", "nvs")), net, losses)
     optimizer = _instantiate(OmegaConf.create(OmegaConf.to_container(cfg.optim, resolve=True)), "optim")
     scheduler = _instantiate(cfg.scheduler, "scheduler") if cfg.get("scheduler") else None
-    module = NVSModule(net, losses, optimizer, nonfinite=cfg.nonfinite, channels_last=bool(cfg.channels_last),
+    if channels_last is None:
+        channels_last = _layout(cfg)
+    module = NVSModule(net, losses, optimizer, nonfinite=cfg.nonfinite, channels_last=channels_last,
                        compile_step=bool(cfg.get("compile", False)),
                        model_name=str(cfg.model.get("name", "nvs")), scheduler=scheduler)
     module.run_config = OmegaConf.to_container(cfg, resolve=True)
     return module
+
+
+def _layout(cfg: DictConfig) -> bool:
+    value = cfg.get("channels_last", "auto")
+    if isinstance(value, bool):
+        return value
+    from nvs.precision import choose
+
+    try:
+        return choose(cfg.get("trainer", {}).get("precision", "auto"), value,
+                      cfg.get("trainer", {}).get("accelerator", "auto")).channels_last
+    except ValueError as err:
+        raise UserError(f"config 'trainer.precision': {err}") from None
 
 
 def check_losses(model: str, net: torch.nn.Module, losses: dict[str, torch.nn.Module]) -> None:

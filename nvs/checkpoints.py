@@ -156,14 +156,15 @@ def restore_run_config(cfg: DictConfig) -> tuple[DictConfig, dict | None]:
     return run, ckpt
 
 
-def restore_module(cfg_run: DictConfig, ckpt: dict | None) -> NVSModule:
+def restore_module(cfg_run: DictConfig, ckpt: dict | None, channels_last: bool | None = None) -> NVSModule:
     """The run's module (network at ``cfg_run.data.size``, its losses) with the checkpoint's weights, in eval mode.
 
-    ``ckpt``: from :func:`restore_run_config` (None: a reference model, nothing to load). A weight the checkpoint
+    ``ckpt``: from :func:`restore_run_config` (None: a reference model, nothing to load); ``channels_last``: the
+    layout the tool runs in (None: the run's own). A weight the checkpoint
     lacks, holds in excess or holds in another shape is a UserError naming the file and the first such weight.
     """
     cfg_run.model.image_size = cfg_run.data.size
-    module = build_module(cfg_run)
+    module = build_module(cfg_run, channels_last=channels_last)
     if ckpt is not None:
         load_weights(module, ckpt, ckpt.get("path", "the checkpoint"))
     return module.eval()

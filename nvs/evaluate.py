@@ -19,6 +19,7 @@ from nvs.build import build_data, parameter_count
 from nvs.checkpoints import restore_module, restore_run_config
 from nvs.config_check import check_cli_overrides
 from nvs.errors import UserError, exits_cleanly, user_message
+from nvs.precision import Choice, choose
 from nvs.provenance import device_name, git_sha
 from nvs.quiet import silence_known_noise
 from nvs.run_files import (check_creatable, check_writable, is_global_zero, remove_unstarted_run, run_dir_of,
@@ -30,8 +31,11 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
     L.seed_everything(int(run.seed), workers=True)
     datamodule = build_data(run)
     datamodule.validate(("test",))
-    module = restore_module(run, ckpt)
-    precision = cfg.precision or run.trainer.get("precision", "32-true")
+    choice = evaluation_precision(cfg, run)
+    module = restore_module(run, ckpt, channels_last=choice.channels_last)
+    precision = choice.precision
+    if is_global_zero():
+        print(choice.line(), flush=True)
     if is_global_zero():
         check_writable(out_dir)
     placement = OmegaConf.to_container(cfg.trainer) if cfg.get("trainer") else {}
@@ -53,6 +57,7 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
         "params": parameter_count(module.net),
         "device": device_name(module.device),
         "precision": str(precision),
+        "precision_choice": choice.record(),
         "git_sha": git_sha(),
         "eval_ms_per_image": 1000 * elapsed / max(len(module.test_rows), 1),
         "eval_forward_ms_per_image": module.test_forward_ms_per_image(),
@@ -62,6 +67,19 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
         write_per_image(out_dir / "test_per_image.csv", module.test_rows)
         write_metrics(out_dir / "metrics.json", result)
     return result
+
+
+def evaluation_precision(cfg: DictConfig, run: DictConfig) -> Choice:
+    """``precision=auto``: measured on this machine; null: the run's own (precision and layout); else as given.
+    A reference model (no checkpoint) always runs its own (32-true)."""
+    accelerator = (cfg.get("trainer") or {}).get("accelerator", "auto")
+    try:
+        # a reference model has no network worth speeding up: it keeps its exact fp32 (as committed jobs ran it)
+        if cfg.get("precision") is None or not cfg.get("ckpt_path"):
+            return choose(run.trainer.get("precision", "32-true"), run.get("channels_last", "auto"), accelerator)
+        return choose(cfg.precision, "auto", accelerator)
+    except ValueError as err:
+        raise UserError(f"precision={cfg.precision}: {err}") from None
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")

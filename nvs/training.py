@@ -25,6 +25,7 @@ from nvs.build import build_data, build_module, parameter_count
 from nvs.checkpoints import AtomicCheckpointIO
 from nvs.errors import Interrupted, UserError, user_message
 from nvs.fit_callbacks import Interruption, Throughput
+from nvs.precision import Choice, choose
 from nvs.provenance import device_name, git_sha
 from nvs.quiet import silence_known_noise
 from nvs.run_files import check_writable, is_global_zero, remove_unstarted_run, write_metrics, write_per_image
@@ -109,7 +110,10 @@ def _run(cfg: DictConfig, out_dir: Path, throughput: Throughput) -> dict:
     testing = bool(cfg.test) and not fast_dev_run
     # Every list and referenced file of the splits this run reads, before the first step (seconds).
     datamodule.validate(("train", "val", "test") if testing else ("train", "val"))
-    module = build_module(cfg)
+    choice = choose_precision(cfg)
+    if is_global_zero():
+        print(choice.line(), flush=True)
+    module = build_module(cfg, channels_last=choice.channels_last)
     callbacks = [instantiate(c) for c in cfg.get("callbacks", {}).values()]
     if not cfg.trainer.get("enable_progress_bar", True):  # the trainer's switch also turns the configured bar off
         callbacks = [c for c in callbacks if not isinstance(c, L.pytorch.callbacks.ProgressBar)]
@@ -126,11 +130,10 @@ def _run(cfg: DictConfig, out_dir: Path, throughput: Throughput) -> dict:
     ckpt_dir = Path(checkpoint_cbs[0].dirpath) if checkpoint_cbs and checkpoint_cbs[0].dirpath else out_dir
     interruption = Interruption(ckpt_dir / "last.ckpt", resume_command(out_dir))
     trainer = _trainer(cfg, callbacks=callbacks + [throughput, interruption], logger=loggers or False,
-                       plugins=[AtomicCheckpointIO()])
+                       plugins=[AtomicCheckpointIO()], precision=choice.precision)
     interruption.install()
     try:
-        return _fit_and_test(cfg, out_dir, trainer, module, datamodule, callbacks, throughput, interruption,
-                             testing)
+        return _fit_and_test(cfg, out_dir, trainer, module, datamodule, callbacks, throughput, choice, testing)
     except SIGTERMException:  # Lightning's own stop on SIGTERM (inside validation); last.ckpt saved on the way
         raise Interrupted(signal.SIGTERM, interruption.message(interruption.last.is_file(), trainer.global_step)) \
             from None
@@ -138,7 +141,17 @@ def _run(cfg: DictConfig, out_dir: Path, throughput: Throughput) -> dict:
         interruption.restore()
 
 
-def _fit_and_test(cfg, out_dir, trainer, module, datamodule, callbacks, throughput, interruption, testing) -> dict:
+def choose_precision(cfg: DictConfig) -> Choice:
+    """``trainer.precision`` and ``channels_last`` as this run executes them (``auto``: measured, nvs.precision)."""
+    try:
+        return choose(cfg.trainer.get("precision", "auto"), cfg.get("channels_last", "auto"),
+                      cfg.trainer.get("accelerator", "auto"))
+    except ValueError as err:
+        raise UserError(f"config 'trainer.precision': {err}") from None
+
+
+def _fit_and_test(cfg: DictConfig, out_dir: Path, trainer: L.Trainer, module, datamodule, callbacks: list,
+                  throughput: Throughput, choice: Choice, testing: bool) -> dict:
     trainer.fit(module, datamodule=datamodule, ckpt_path=_resume_path(cfg, out_dir))
     result = {
         "model": module.model_name,
@@ -151,7 +164,8 @@ def _fit_and_test(cfg, out_dir, trainer, module, datamodule, callbacks, throughp
         "train_step_ms": throughput.step_ms(),
         "params": parameter_count(module.net),
         "device": device_name(module.device),
-        "precision": str(cfg.trainer.precision),
+        "precision": choice.precision,
+        "precision_choice": choice.record(),
         "git_sha": git_sha(),
         "overrides": list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else [],
     }

@@ -158,6 +158,11 @@ def test_short_run_writes_artifacts(objects_root, tmp_path):
     run_dir = next(tmp_path.rglob("metrics.json")).parent
     m = json.loads((run_dir / "metrics.json").read_text())
     assert m["steps"] == 4 and 0 < m["test"]["l1"] < 2 and m["test"]["n_pairs"] == 4
+    # precision=auto (the default): the mode this machine measured fastest, recorded and said in one line
+    choice = m["precision_choice"]
+    assert choice["requested"] == "auto" and m["precision"] == choice["precision"]
+    assert choice["mode"] == min(choice["probe_ms"], key=choice["probe_ms"].get)
+    assert f"precision: {choice['mode']} ({choice['precision']}" in res.stdout + res.stderr
     assert (run_dir / "checkpoints" / "last.ckpt").is_file()
     assert any(p.name.startswith("best-") for p in (run_dir / "checkpoints").iterdir())
     assert (run_dir / ".hydra" / "config.yaml").is_file()

@@ -33,6 +33,7 @@ from pathlib import Path
 
 from nvs.errors import UserError
 from nvs.runs import Run
+from nvs.sweep.cost_check import check_precision
 from nvs.sweep.export import export_jobs, export_root
 from nvs.sweep.jobs import Job, Status, plan, prepare_job_dir, to_launch
 from nvs.sweep.launch import Launch, _cores, _interrupt, launch_row, multirun_command
@@ -64,6 +65,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--rows", metavar="GLOBS", help="launch only the rows whose name matches one of these comma-separated "
                    "globs, e.g. 'chen_*,*_chairs' (a study split across sessions or machines); the tables still "
                    "list every row")
+    p.add_argument("--accept-precision", action="store_true", help="launch even where this machine measures the "
+                   "jobs' pinned precision (e.g. bf16 without native bf16) >= 1.5x slower than its fastest mode")
     p.add_argument("--skip-failed", action="store_true", help="do not retry jobs that failed before")
     p.add_argument("--force", action="store_true", help="re-run every job (old directories go to <root>/.stale)")
     p.add_argument("--figures", action="store_true", help="also draw the study's figures (nvs.figures) into "
@@ -118,6 +121,11 @@ def run(argv: list[str] | None = None) -> int:
     _print_plan(jobs, launching)
     if launching and not args.force:  # never continue a study on another render of its data
         check_launch([j for j in jobs if j.status == Status.DONE], launching)
+    if launching and args.collect_only is None:
+        launch = Launch.local(args.jobs, args.threads, extra)
+        remote = any(o.startswith("hydra/launcher=submitit_slurm") for o in extra)  # a cluster's machines
+        check_precision(launching, launch.threads, remote, args.accept_precision or args.dry_run,
+                        lambda text: print(text, file=sys.stderr))
     if args.dry_run:
         launch = Launch.local(args.jobs, args.threads, extra)
         for row in study.rows:

@@ -14,11 +14,8 @@ digest. A finished job stays valid while its stored config is compatible with th
     job was trained with (the rule every new config key must follow; a default that changes results needs
     ``--force``, as a code change does) -- unless the new node is or holds a component (a mapping with
     ``_target_``, e.g. a loss term or a callback added to the defaults), which is a change.
-A job whose key differs from its record's (the row's overrides changed) is stale too.
-
-Records written before keys were override-based (no ``version`` field; their key was the digest of the whole
-config) are judged by their stored config alone, with the rule above, so finished runs are recognised without
-re-running; a record is rewritten in the new form when its job is relaunched.
+A job whose key differs from its record's (the row's overrides changed) is stale too; a record from before keys were
+override-based (no ``version``) is judged by its stored config alone.
 """
 
 from __future__ import annotations
@@ -42,6 +39,8 @@ from nvs.sweep.study import Row, Study
 
 JOB_RECORD = "sweep_job.json"
 RECORD_VERSION = 2  # 2: the key is made of the row's overrides; the config is checked with config_changes
+# (key, stored, now): defaults renamed, behaviour kept (nvs.evaluate's null -> auto: a reference row runs 32-true)
+SAME_BEHAVIOUR = {("precision", None, "auto")}
 # Keys that place or display a run but do not change its result; left out of the key and of the stored config.
 NEUTRAL_KEYS = ("paths", "hydra", "ckpt_path", "out_dir", "task_name", "tags",
                 "trainer.enable_progress_bar", "trainer.enable_model_summary")
@@ -169,7 +168,8 @@ def config_digest(fingerprint: dict) -> str:
 def config_changes(old: Any, new: Any, prefix: str = "") -> list[str]:
     """The dotted keys that make a result stale: changed or removed ones, and new components (see the module doc)."""
     if not (isinstance(old, dict) and isinstance(new, dict)):
-        return [] if old == new else [prefix.rstrip(".") or "<config>"]
+        key = prefix.rstrip(".")
+        return [] if old == new or (key, old, new) in SAME_BEHAVIOUR else [key or "<config>"]
     out = []
     for k in sorted(set(old) | set(new), key=str):
         if k not in new:

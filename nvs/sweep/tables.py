@@ -54,6 +54,7 @@ def render_markdown(study: Study, records: list[dict], provenance: dict) -> str:
         f"| image size | {study.size}² |",
         f"| steps | {_steps_cell(study, records)} |",
         f"| seeds | {', '.join(str(s) for s in study.seeds)} (reference rows: {study.seeds[0]}) |",
+        f"| precision | {precision_cell(records)} |",
         f"| jobs | {', '.join(f'{n} {s}' for s, n in sorted(counts.items()))} |",
         f"| test sets | {test_sets_cell(records)} |",
         "",
@@ -79,6 +80,18 @@ def render_markdown(study: Study, records: list[dict], provenance: dict) -> str:
     else:
         lines += _metrics_tables(groups, present, paper_metrics, study.against)
     return "\n".join(lines)
+
+
+def precision_cell(records: list[dict]) -> str:
+    """The trained jobs' precision: one value, or each row's where they differ (never mixed unmarked)."""
+    trained = [r for r in records if r["status"] == "done" and r["kind"] != "reference"]
+    values = sorted({str(r.get("precision")) for r in trained})
+    if len(values) <= 1:
+        return f"{values[0]} (every trained job)" if values else "—"
+    per_row: dict[str, set] = {}
+    for r in trained:
+        per_row.setdefault(r["label"], set()).add(str(r.get("precision")))
+    return "**mixed**: " + "; ".join(f"{md_cell(label)} {'/'.join(sorted(p))}" for label, p in per_row.items())
 
 
 def _steps_cell(study: Study, records: list[dict]) -> str:

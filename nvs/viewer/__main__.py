@@ -26,7 +26,7 @@ def main(cfg: DictConfig) -> None:
     first = next(iter(session.gallery.values()))
     session.view(first.key, session.controls.initial(first.meta))  # warm-up: the first page view is not the slowest
     print(f"viewer: model '{meta['model']}' at {session.image_size}², {len(session.gallery)} gallery images, "
-          f"{cfg.precision}, {'encoder once per source' if session.splits else 'whole network per view'}", flush=True)
+          f"{meta['precision_choice']}, {'encoder once per source' if session.splits else 'whole network per view'}", flush=True)
     serve(build_app(session, meta, cfg.threads), cfg.host, cfg.port)
 
 

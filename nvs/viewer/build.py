@@ -14,7 +14,8 @@ from nvs.build import build_data
 from nvs.checkpoints import restore_module, restore_run_config
 from nvs.errors import UserError
 from nvs.viewer.controls import build_controls
-from nvs.viewer.session import PRECISIONS, Source, ViewSession
+from nvs.precision import choose
+from nvs.viewer.session import Source, ViewSession
 
 
 def build_session(cfg: DictConfig, extra_ids: tuple[str, ...] = ()) -> tuple[ViewSession, dict]:
@@ -25,15 +26,19 @@ def build_session(cfg: DictConfig, extra_ids: tuple[str, ...] = ()) -> tuple[Vie
     """
     if not cfg.ckpt_path:
         raise UserError("give ckpt_path=<a trained checkpoint>, e.g. runs/demo/<time>/checkpoints/last.ckpt")
-    if cfg.precision not in PRECISIONS:
-        raise UserError(f"precision={cfg.precision!r}: expected one of {', '.join(PRECISIONS)}")
+    try:  # the viewer runs on the CPU: auto is the fastest mode there
+        choice = choose(cfg.precision, "auto", accelerator="cpu")
+    except ValueError as err:
+        raise UserError(f"precision={cfg.precision!r}: {err}") from None
+    if choice.precision not in ("32-true", "bf16-mixed"):
+        raise UserError(f"precision={cfg.precision!r}: the viewer runs auto, 32-true or bf16-mixed")
     if not isinstance(cfg.gallery, int) or cfg.gallery < 1:
         raise UserError(f"gallery={cfg.gallery!r}: expected a positive number of images")
     run, ckpt = restore_run_config(cfg)
     run.data.loader.with_depth = False  # the viewer shows predicted depth only
     run.loss = {}  # no loss networks (VGG) to build
     datamodule = build_data(run)
-    module = restore_module(run, ckpt)
+    module = restore_module(run, ckpt, channels_last=choice.channels_last)
     test = datamodule.dataset("test")
     controls = build_controls(run.data.format, datamodule)
     ids = list(dict.fromkeys(src for pair in test.pairs for src in pair))
@@ -47,9 +52,9 @@ def build_session(cfg: DictConfig, extra_ids: tuple[str, ...] = ()) -> tuple[Vie
             picked.append(fid)
     gallery = [Source(f"g{i}", fid, test.cache.get(fid)[0], controls.source_meta(fid)) for i, fid in enumerate(picked)]
     session = ViewSession(module.net, int(run.data.size), test.K, test.pivot, controls, gallery,
-                          PRECISIONS[cfg.precision])
+                          choice.autocast_dtype, channels_last=choice.channels_last)
     meta = {"model": module.model_name, "data": run.data.get("name"), "checkpoint": cfg.ckpt_path,
-            "precision": cfg.precision, "encoder_once": session.splits}
+            "precision": choice.precision, "precision_choice": choice.line(), "encoder_once": session.splits}
     return session, meta
 
 

@@ -20,8 +20,6 @@ from nvs.errors import UserError
 from nvs.viewer.controls import ObjectControls, SceneControls
 from nvs.viewer.images import decode_upload, depth_to_uint8, to_uint8
 
-# Autocast dtype per precision name (Lightning's names, as in the trainer config).
-PRECISIONS: dict[str, torch.dtype | None] = {"bf16-mixed": torch.bfloat16, "32-true": None}
 
 
 @dataclass
@@ -55,16 +53,17 @@ class ViewSession:
         K: (3,3) intrinsics at the model's size; pivot: (3,) latent pivot.
         controls: the data format's pose controls.
         gallery: the test-split sources offered on the page.
-        autocast: bf16 (the fast mode) or None (float32).
+        autocast: bf16 or None (float32); channels_last: the memory layout (both from nvs.precision.choose).
         cache_size: encoded sources (and uploads) kept.
     """
 
     def __init__(self, net: nn.Module, image_size: int, K: torch.Tensor, pivot: torch.Tensor,
                  controls: ObjectControls | SceneControls, gallery: list[Source], autocast: torch.dtype | None,
-                 cache_size: int = 8):
+                 cache_size: int = 8, channels_last: bool = True):
         if not gallery:
             raise UserError("the dataset's test split has no source images for the gallery")
-        self.net = net.eval().to(memory_format=torch.channels_last)
+        self.layout = torch.channels_last if channels_last else torch.contiguous_format
+        self.net = net.eval().to(memory_format=self.layout)
         self.image_size = image_size
         self.K, self.pivot = K.float()[None], pivot.float()[None]
         self.controls = controls
@@ -100,7 +99,7 @@ class ViewSession:
         return torch.autocast("cpu", dtype=self.autocast or torch.bfloat16, enabled=self.autocast is not None)
 
     def _src(self, source: Source) -> torch.Tensor:
-        return (source.image.float() / 255.0)[None].contiguous(memory_format=torch.channels_last)
+        return (source.image.float() / 255.0)[None].contiguous(memory_format=self.layout)
 
     def _encode(self, source: Source) -> tuple[object, bool]:
         """The cached encoding of a source (the source image itself for networks that run whole)."""

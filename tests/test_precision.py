@@ -1,0 +1,157 @@
+"""precision=auto: the probe, its cache, the choice and its warning, and where the choice reaches a run."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from nvs import precision
+from nvs.precision import choose, normalise
+
+# A CPU that emulates bf16 (the AVX2-only EPYC: ~10x) and one that has it natively.
+EMULATED = {"fp32": 10.0, "cl": 9.0, "bf16_cl": 95.0}
+NATIVE = {"fp32": 10.0, "cl": 9.5, "bf16_cl": 6.0}
+
+
+@pytest.fixture
+def probed(monkeypatch):
+    """Replace the timed probe with fixed timings; returns a setter."""
+    state = {"ms": NATIVE}
+    monkeypatch.setattr(precision, "probe", lambda refresh=False: dict(state["ms"]))
+    monkeypatch.setattr(precision.torch.cuda, "is_available", lambda: False)
+
+    def use(ms):
+        state["ms"] = ms
+    return use
+
+
+def test_auto_picks_the_fastest_mode_of_the_probe(probed):
+    probed(NATIVE)
+    c = choose()
+    assert (c.mode, c.precision, c.channels_last) == ("bf16_cl", "bf16-mixed", True)
+    assert c.autocast_dtype is torch.bfloat16 and c.requested == "auto" and c.probe_ms == NATIVE
+    probed(EMULATED)
+    c = choose()
+    assert (c.mode, c.precision, c.channels_last) == ("cl", "32-true", True) and c.autocast_dtype is None
+    assert "fastest" in c.reason and "bf16_cl 10.56x" in c.reason
+    assert c.line().startswith("precision: cl (32-true, channels_last): ")
+
+
+def test_an_explicit_precision_is_honoured_and_emulated_bf16_warns_once_with_the_slowdown(probed):
+    probed(EMULATED)
+    said = []
+    c = choose("bf16-mixed", warn=said.append)
+    assert (c.precision, c.channels_last, c.mode) == ("bf16-mixed", True, "bf16_cl")
+    assert len(said) == 1 and "10.6x slower than cl" in said[0] and said[0].startswith("warning: ")
+    assert "measured 10.6x slower" in c.reason
+    said.clear()
+    probed(NATIVE)
+    assert choose("bf16", warn=said.append).precision == "bf16-mixed" and said == []
+    # fp32 asked, layout left to the probe: the faster of NCHW and channels_last; a given layout is kept
+    probed({"fp32": 8.0, "cl": 9.0, "bf16_cl": 6.0})
+    assert (choose("32").precision, choose("32").channels_last) == ("32-true", False)
+    assert choose("32-true", channels_last=True).channels_last is True
+    assert choose("auto", channels_last=False).precision == "32-true"  # the one mode in NCHW
+
+
+def test_cuda_picks_bf16_where_the_device_supports_it(monkeypatch):
+    monkeypatch.setattr(precision.torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(precision, "probe", lambda refresh=False: pytest.fail("no CPU probe on CUDA"))
+    monkeypatch.setattr(precision.torch.cuda, "is_bf16_supported", lambda: True)
+    assert (choose().precision, choose().channels_last) == ("bf16-mixed", True)
+    monkeypatch.setattr(precision.torch.cuda, "is_bf16_supported", lambda: False)
+    assert choose().precision == "32-true"
+    assert choose("16-mixed").precision == "16-mixed"
+
+
+def test_an_unknown_precision_is_a_value_error_naming_the_choices():
+    assert normalise("32") == "32-true" and normalise("bf16") == "bf16-mixed" and normalise("auto") == "auto"
+    with pytest.raises(ValueError, match="expected auto or one of"):
+        normalise("fp33")
+
+
+def test_the_probe_runs_once_per_machine_and_is_cached(tmp_path, monkeypatch):
+    monkeypatch.setenv("NVS_CACHE_DIR", str(tmp_path))
+    calls = []
+    real = precision._time_mode
+
+    def counted(mode, *args):
+        calls.append(mode)
+        return real(mode, *args)
+
+    monkeypatch.setattr(precision, "_time_mode", counted)
+    first = precision.probe()
+    assert sorted(calls) == sorted(precision.MODES) and all(v > 0 for v in first.values())
+    assert precision.probe() == first and len(calls) == 3  # from the cache
+    cache = json.loads((tmp_path / "precision.json").read_text())
+    assert list(cache) == [precision.machine_key()] and cache[precision.machine_key()]["ms"] == first
+    precision.probe(refresh=True)
+    assert len(calls) == 6
+
+
+def test_the_machine_key_tells_apart_cpus_that_share_a_model_name(monkeypatch):
+    zen3 = {"model name": "AMD EPYC", "cpu family": "25", "model": "1", "stepping": "1", "flags": "avx2 fma"}
+    zen4 = {**zen3, "model": "17", "flags": "avx2 avx512f avx512_bf16"}
+    monkeypatch.setattr(precision, "_cpuinfo", lambda: zen3)
+    key3 = precision.machine_key()
+    monkeypatch.setattr(precision, "_cpuinfo", lambda: zen4)
+    key4 = precision.machine_key()
+    assert key3 != key4 and "no-bf16" in key3 and "avx512_bf16" in key4 and torch.__version__ in key4
+
+
+def test_an_unwritable_cache_only_costs_the_probe(tmp_path, monkeypatch):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    monkeypatch.setenv("NVS_CACHE_DIR", str(blocker / "sub"))
+    assert set(precision.probe()) == set(precision.MODES)
+
+
+def test_the_sweep_refuses_a_pinned_mode_this_machine_emulates(probed):
+    from nvs.errors import UserError
+    from nvs.sweep.cost_check import check_precision
+
+    class FakeJob:
+        kind = "train"
+        fingerprint = {"trainer": {"precision": "bf16-mixed", "accelerator": "auto"}, "channels_last": True}
+
+    said = []
+    probed(EMULATED)
+    with pytest.raises(UserError, match=r"9\.0x|10\.6x") as err:
+        check_precision([FakeJob()], 1, remote=False, accept=False, log=said.append)
+    assert "--accept-precision" in str(err.value) and "native bf16" in str(err.value)
+    assert "10.56x the fastest (cl)" in said[0]
+    check_precision([FakeJob()], 1, remote=False, accept=True, log=said.append)  # accepted: runs, says so
+    said.clear()
+    probed(NATIVE)
+    check_precision([FakeJob()], 1, remote=False, accept=False, log=said.append)
+    assert "1.00x the fastest (bf16_cl)" in said[0]
+    said.clear()
+    check_precision([FakeJob()], 1, remote=True, accept=False, log=said.append)
+    assert "cannot measure" in said[0]
+
+
+def test_evaluate_keeps_a_reference_model_exact_and_reads_null_as_the_runs_own(probed):
+    from omegaconf import OmegaConf
+
+    from nvs.evaluate import evaluation_precision
+
+    probed(NATIVE)
+    run = OmegaConf.create({"trainer": {"precision": "32-true"}, "channels_last": False})
+    reference = OmegaConf.create({"precision": "auto", "ckpt_path": None})
+    assert (evaluation_precision(reference, run).precision, evaluation_precision(reference, run).channels_last) \
+        == ("32-true", False)
+    trained = OmegaConf.create({"precision": "auto", "ckpt_path": "x.ckpt"})
+    assert evaluation_precision(trained, run).precision == "bf16-mixed"
+    own = OmegaConf.create({"precision": None, "ckpt_path": "x.ckpt"})
+    assert evaluation_precision(own, run).precision == "32-true"
+
+
+def test_committed_reference_jobs_stay_valid_across_the_evaluate_default_change():
+    from nvs.sweep.jobs import config_changes
+
+    assert config_changes({"precision": None, "seed": 0}, {"precision": "auto", "seed": 0}) == []
+    assert config_changes({"precision": "32-true"}, {"precision": "auto"}) == ["precision"]
+    assert config_changes({"trainer": {"precision": None}}, {"trainer": {"precision": "auto"}}) \
+        == ["trainer.precision"]
