@@ -19,11 +19,21 @@ from nvs.bench.contenders import MODES
 from nvs.bench.reference import check_path
 from nvs.compose import CONF_DIR
 from nvs.errors import UserError, exits_cleanly
+from nvs.precision import choose, native_bf16_flags
 from nvs.provenance import command_line, device_name, header
 
 
 def _slug(name: str) -> str:
     return "".join(c if c.isalnum() else "-" for c in name.lower()).strip("-")[:60]
+
+
+def device_slug(device: torch.device) -> str:
+    """The report's file name: the device, and for a CPU its class (native bf16 or not), which decides the modes."""
+    name = _slug(device_name(device).split("(")[0])
+    if device.type != "cpu":
+        return name
+    flags = native_bf16_flags()
+    return f"{name}-{flags[-1].replace('_', '-') if flags else 'no-native-bf16'}"
 
 
 def _positive(value, key: str) -> int:
@@ -74,7 +84,7 @@ def _profiles(cfg: DictConfig, device: torch.device) -> None:
                             warmup=cfg.warmup + 1, steps=cfg.repeats)
         head = header(command_line("nvs.bench"), device, threads=torch.get_num_threads())
         suffix = "" if model == "full" else f"_{model}"
-        path = f"{cfg.out_dir}/profile_{_slug(device_name(device).split('(')[0])}_{size}{suffix}.md"
+        path = f"{cfg.out_dir}/profile_{device_slug(device)}_{size}{suffix}.md"
         write_text(path, markdown(head, prof))
         print(f"wrote {path}")
 
@@ -99,11 +109,14 @@ def main(cfg: DictConfig) -> None:
     if cfg.measure_peak:
         report["peak"] = measure.machine_peak(device)
         print(f"peak: {report['peak']}", flush=True)
-    name = _slug(device_name(device).split("(")[0])
+    name = device_slug(device)
+    auto = choose("auto", "auto", device.type)
+    print(auto.line(), flush=True)
     for size, batch in pairs:
         report["sizes"].append(bench_size(models, list(cfg.modes), size, batch, cfg.eval_batch, cfg.throughput_batch,
                                           cfg.warmup, cfg.repeats, device, cfg.paths.root_dir, reference,
                                           log=lambda msg: print(msg, flush=True)))
+        report["sizes"][-1]["auto"] = {"mode": auto.mode, "reason": auto.reason, "probe_ms": auto.probe_ms}
         write_json(f"{cfg.out_dir}/{name}.json", report)  # after every size: a long run keeps what it measured
         write_text(f"{cfg.out_dir}/{name}.md", markdown(report))
     print(f"wrote {cfg.out_dir}/{name}.json and .md")

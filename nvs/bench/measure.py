@@ -119,16 +119,36 @@ def interleaved(fns: dict[str, Callable[[], object]], device: torch.device, warm
     return out
 
 
-def machine_peak(device: torch.device) -> dict:
-    """Achievable bf16 GFLOP/s: a large matmul and a 3x3 64-channel channels_last convolution."""
-    a = torch.randn(2048, 2048, device=device, dtype=torch.bfloat16)
-    conv = torch.nn.Conv2d(64, 64, 3, padding=1).to(device, memory_format=torch.channels_last)
-    x = torch.randn(8, 64, 128, 128, device=device).contiguous(memory_format=torch.channels_last)
+# Peak kinds: (dtype, what); "conv" is a 3x3 64-channel convolution at 128² batch 8, forward (the network's typical
+# layer), in NCHW or channels_last; "matmul" a 2048² matmul.
+PEAK_KINDS = {"fp32_matmul": (None, "matmul"), "fp32_conv": (None, "conv"), "fp32_conv_cl": (None, "conv_cl"),
+              "bf16_matmul": (torch.bfloat16, "matmul"), "bf16_conv_cl": (torch.bfloat16, "conv_cl")}
+# Which peak a bench mode is measured against (its own arithmetic and layout).
+MODE_PEAK = {"fp32": "fp32_conv", "cl": "fp32_conv_cl", "bf16": "bf16_conv_cl", "bf16_cl": "bf16_conv_cl",
+             "compile": "bf16_conv_cl"}
+_N, _C, _S = 8, 64, 128
 
-    def run_conv():
-        with torch.no_grad(), torch.autocast(device.type, dtype=torch.bfloat16):
-            conv(x)
 
-    t = interleaved({"mm": lambda: a @ a, "conv": run_conv}, device, 2, 5)
-    return {"bf16_matmul_gflops": 2 * 2048**3 / t["mm"]["median_ms"] / 1e6,
-            "bf16_conv3x3_gflops": 2 * 8 * 64 * 64 * 9 * 128 * 128 / t["conv"]["median_ms"] / 1e6}
+def machine_peak(device: torch.device, repeats: int = 7) -> dict:
+    """Achievable GFLOP/s of every ``PEAK_KINDS`` entry, timed interleaved (medians): {kind + "_gflops": value}."""
+    a = torch.randn(2048, 2048, device=device)
+    x = torch.randn(_N, _C, _S, _S, device=device)
+    conv = torch.nn.Conv2d(_C, _C, 3, padding=1).to(device)
+    conv_cl = torch.nn.Conv2d(_C, _C, 3, padding=1).to(device, memory_format=torch.channels_last)
+    x_cl = x.contiguous(memory_format=torch.channels_last)
+    mats = {None: a, torch.bfloat16: a.to(torch.bfloat16)}
+    flop = {"matmul": 2 * 2048**3, "conv": 2 * _N * _C * _C * 9 * _S * _S}
+    flop["conv_cl"] = flop["conv"]
+
+    def kernel(dtype, what):
+        def run():
+            with torch.no_grad(), torch.autocast(device.type, dtype=dtype or torch.bfloat16, enabled=dtype is not None):
+                if what == "matmul":
+                    mats[dtype] @ mats[dtype]
+                else:
+                    (conv_cl if what == "conv_cl" else conv)(x_cl if what == "conv_cl" else x)
+        return run
+
+    t = interleaved({k: kernel(*v) for k, v in PEAK_KINDS.items()}, device, 2, repeats)
+    return {f"{k}_gflops": flop[v[1]] / t[k]["median_ms"] / 1e6 for k, v in PEAK_KINDS.items()
+            if "median_ms" in t[k]}

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from nvs.bench.goals import goal_lines
+from nvs.bench.measure import MODE_PEAK
 from nvs.bench.run import REFERENCE, versus_reference
 from nvs.provenance import markdown as provenance_markdown
 
@@ -14,21 +16,26 @@ def _f(value, fmt: str) -> str:
     return "–" if value is None or value != value else format(value, fmt)
 
 
-def size_table(block: dict, peak: float | None) -> list[str]:
+def _pct(achieved, peaks: dict, mode: str) -> str:
+    peak = peaks.get(MODE_PEAK.get(mode, "") + "_gflops")
+    return f"{100 * achieved / peak:.0f}%" if achieved and peak else "–"
+
+
+def size_table(block: dict, peaks: dict) -> list[str]:
     s, b = block["size"], block["train_batch"]
     thr = block.get("throughput_batch")
     lines = [f"## {s}², train batch {b}, eval batch {block['eval_batch']}", "",
              "| model | mode | params | train ms/step (min–max) | samples/s | × fp32 | eval ms/img | × fp32 | "
              f"img/s @bs{thr or '–'} | peak MB train / eval | GFLOP/sample train | GFLOP/img eval | "
-             "achieved GFLOP/s | % of conv peak |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "train GFLOP/s | train % of mode's peak | eval GFLOP/s | eval % of mode's peak |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for row in block["rows"].values():
         name = "authors' code" if row["model"] == REFERENCE else row["model"]
         if "error" in row:
-            lines.append(f"| {name} | {row['mode']} | failed: {row['error']} |" + " |" * 11)
+            lines.append(f"| {name} | {row['mode']} | failed: {row['error']} |" + " |" * 13)
             continue
         t = row["train"]
-        ach = row.get("train_achieved_gflops")
+        ach, ach_eval = row.get("train_achieved_gflops"), row.get("eval_achieved_gflops")
         lines.append(
             f"| {name} | {row['mode']} | {row['params'] / 1e6:.2f} M | {t['median_ms']:.0f} "
             f"({t['min_ms']:.0f}–{t['max_ms']:.0f}) | {row['train_samples_per_s']:.1f} | "
@@ -36,8 +43,30 @@ def size_table(block: dict, peak: float | None) -> list[str]:
             f"{_f(row.get('eval_speedup'), '.2f')}× | {_f(row.get('throughput_images_per_s'), '.1f')} | "
             f"{_f(row.get('train_peak_mb'), '.0f')} / {_f(row.get('eval_peak_mb'), '.0f')} | "
             f"{_f(row.get('train_gflop_per_sample'), '.1f')} | {_f(row.get('eval_gflop_per_image'), '.1f')} | "
-            f"{_f(ach, '.0f')} | {_f(100 * ach / peak if ach and peak else None, '.0f')}"
-            f"{'%' if ach and peak else ''} |")
+            f"{_f(ach, '.0f')} | {_pct(ach, peaks, row['mode'])} | {_f(ach_eval, '.0f')} | "
+            f"{_pct(ach_eval, peaks, row['mode'])} |")
+    return lines + [""] + auto_lines(block)
+
+
+def auto_lines(block: dict) -> list[str]:
+    """How the mode ``precision=auto`` picks compares with the fastest mode measured here, per model and task."""
+    auto = block.get("auto")
+    if not auto:
+        return []
+    lines = [f"precision=auto picks **{auto['mode']}** here ({auto['reason']}). Against the fastest mode this "
+             "bench measured (goal: within 10%):", ""]
+    models = dict.fromkeys(r["model"] for r in block["rows"].values() if r["model"] != REFERENCE)
+    for model in models:
+        rows = {r["mode"]: r for r in block["rows"].values() if r["model"] == model and "error" not in r}
+        parts = []
+        for task, key in (("train", "train_ms"), ("novel view", "eval_ms_per_image")):
+            timed = {m: r[key] for m, r in rows.items() if r.get(key) and m != "compile"}
+            if auto["mode"] in timed:
+                best = min(timed, key=timed.get)
+                ratio = timed[auto["mode"]] / timed[best]
+                parts.append(f"{task} {ratio:.2f}× the fastest ({best})" + ("" if ratio <= 1.10 else " **> 10%**"))
+        if parts:
+            lines.append(f"- {model}: " + ", ".join(parts))
     return lines + [""]
 
 
@@ -83,10 +112,17 @@ def reference_table(block: dict, model: str = "full") -> list[str]:
 def markdown(report: dict) -> str:
     h = report["header"]
     lines = [f"# Benchmark on {h['device']}", "", provenance_markdown(h), ""]
-    p = report.get("peak")
+    p = report.get("peak") or {}
+    if "bf16_conv3x3_gflops" in p:  # reports from before the fp32 peaks
+        p = {"bf16_matmul_gflops": p["bf16_matmul_gflops"], "bf16_conv_cl_gflops": p["bf16_conv3x3_gflops"]}
     if p:
-        lines += [f"Measured peak: bf16 matmul {p['bf16_matmul_gflops']:.0f} GFLOP/s, bf16 channels_last 3×3 conv "
-                  f"{p['bf16_conv3x3_gflops']:.0f} GFLOP/s.", ""]
+        names = {"fp32_matmul": "fp32 matmul", "fp32_conv": "fp32 3×3 conv NCHW", "fp32_conv_cl":
+                 "fp32 3×3 conv channels_last", "bf16_matmul": "bf16 matmul", "bf16_conv_cl":
+                 "bf16 3×3 conv channels_last"}
+        lines += ["Measured peaks (GFLOP/s; a 2048² matmul, a 3×3 64-channel conv at 128², batch 8, forward): "
+                  + ", ".join(f"{names[k]} {p[k + '_gflops']:.0f}" for k in names if k + "_gflops" in p)
+                  + ". Each row's % is of its own mode's conv peak (fp32 → NCHW, cl → channels_last, bf16 modes → "
+                  "bf16 channels_last).", ""]
     lines += ["Train: one optimiser step on a synthetic batch of the data contract (forward, `NVSModule.loss`, "
               "backward, Adam) as training runs it; eval: the novel view of the eval batch under `no_grad`. Medians "
               "over interleaved repeats (every contender of a size once per round). Peak memory: what one call "
@@ -94,10 +130,10 @@ def markdown(report: dict) -> str:
               "optimiser state. FLOPs: `torch.utils.flop_counter` (convolutions and matmuls, forward and "
               "backward). Modes: fp32 NCHW eager (the paper code's arithmetic), cl = channels_last, bf16 = "
               "autocast, compile = bf16_cl with `torch.compile` of the step's forward and losses.", ""]
-    conv_peak = (p or {}).get("bf16_conv3x3_gflops")
+    lines += goal_lines({**report, "peak": p})
     for block in report["sizes"]:
         lines += reference_table(block)
-        lines += size_table(block, conv_peak)
+        lines += size_table(block, p)
     lines += accuracy_section(Path(h.get("precision_csv") or "results/precision.csv"))
     return "\n".join(lines) + "\n"
 

@@ -104,6 +104,8 @@ def _derive(rows: dict[str, dict], train_batch: int) -> None:
         if "train_gflop_per_sample" in row:
             row["train_achieved_gflops"] = row["train_gflop_per_sample"] * train_batch / (
                 row["train"]["median_ms"] / 1e3)
+        if row.get("eval_gflop_per_image") and row.get("eval_ms_per_image"):
+            row["eval_achieved_gflops"] = row["eval_gflop_per_image"] / (row["eval_ms_per_image"] / 1e3)
 
 
 def versus_reference(rows: dict[str, dict], model: str = "full") -> dict[str, dict]:
