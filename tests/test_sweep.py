@@ -622,7 +622,9 @@ def _ordered_row(name, dirs, paper_l1, paper_ssim=None):
     return {"row": name, "l1": (l1, None), "ssim_paper": (1 - l1, None), "paper": paper, "dirs": dirs}
 
 
-def test_orderings_are_decided_by_a_paired_bootstrap_over_test_models(tmp_path):
+def test_orderings_are_decided_by_a_two_level_bootstrap_over_seeds_and_test_models(tmp_path):
+    from nvs.sweep.bootstrap import MAX_RESAMPLES, RESAMPLES
+
     n = 30  # 10 test models x 3 pairs
     a = _per_image(tmp_path, "a", [0.30 + 0.01 * (k % 5) for k in range(n)])
     b = _per_image(tmp_path, "b", [0.20 + 0.01 * (k % 5) for k in range(n)])
@@ -632,26 +634,32 @@ def test_orderings_are_decided_by_a_paired_bootstrap_over_test_models(tmp_path):
             {"row": "copy", "l1": (0.5, None), "ssim_paper": (0.1, None), "paper": {}, "dirs": []}]
     lines = sweep.orderings(rows, ["l1", "ssim_paper"])
     assert lines == sweep.orderings(rows, ["l1", "ssim_paper"])  # seeded: the same files give the same text
-    assert "paired bootstrap over test models" in lines[0] and "2000 resamples" in lines[0]
+    assert "two-level bootstrap: each row's seeds, then the test models" in lines[0]
+    assert f"{RESAMPLES} to {MAX_RESAMPLES} resamples" in lines[0]
     l1_at = next(i for i, line in enumerate(lines) if line.startswith("- **L1**"))
     assert "paper: c > b > a;" in lines[l1_at] and "of 3 pairs 2 agree, 0 swap, 1 unresolved" in lines[l1_at]
     pairs = {ln.split(":")[0].strip("- "): ln for ln in lines[l1_at + 1:l1_at + 4]}
-    assert pairs["c / b"].startswith("  - c / b: unresolved, Δ +0.00000 [-0.")
+    assert pairs["c / b"].startswith("  - c / b: unresolved (1 seed: c, b), Δ +0.00000 [-0.")
     assert "over 10 test models (30 pairs)" in pairs["c / b"]
-    assert pairs["c / a"].startswith("  - c / a: agree, Δ -0.10000 [-0.1")
-    assert "b / a: agree, Δ -0.10000" in pairs["b / a"]
+    assert pairs["c / a"].startswith("  - c / a: agree (1 seed: c, a), Δ -0.10000 [-0.1")
+    assert "b / a: agree (1 seed: b, a), Δ -0.10000" in pairs["b / a"]
+    # the per-model trace: b beats a on every model (sign test 2 / 2^10 = 0.00195), and no three models undo it;
+    # c - b is -0.05 on five models and +0.05 on the other five
+    assert "; b better on 10/10 models, sign test p = 0.00195; undone without: ≥4 models" in pairs["b / a"]
+    assert pairs["c / b"].endswith("; c better on 5/10 models, sign test p = 1")  # unresolved: nothing to undo
     # SSIM: higher is better; the same verdicts (the CSV's ssim_paper is 1 - l1)
     ssim_line = next(line for line in lines if line.startswith("- **SSIM (paper)**"))
     assert "of 3 pairs 2 agree, 0 swap, 1 unresolved" in ssim_line
     # c clearly worse than b: a swap, with an interval that excludes zero
     worse = _per_image(tmp_path, "worse", [0.25 + 0.01 * (k % 5) for k in range(n)])
     lines = sweep.orderings([_ordered_row("b", [b], 0.08), _ordered_row("c", [worse], 0.06)], ["l1"])
-    assert "0 agree, 1 swap, 0 unresolved" in lines[2] and "c / b: swap, Δ +0.05000 [+0.05000, +0.05000]" in lines[3]
+    assert "0 agree, 1 swap, 0 unresolved" in lines[2]
+    assert "c / b: swap (1 seed: c, b), Δ +0.05000 [+0.05000, +0.05000]" in lines[3]
     assert sweep.orderings(rows[:1], ["l1"]) == []
 
 
 def test_the_bootstrap_averages_seeds_groups_scenes_by_sequence_and_names_missing_results(tmp_path):
-    from nvs.sweep.bootstrap import group_of, paired_gap, seed_mean
+    from nvs.sweep.bootstrap import group_of, paired_gap, read_seeds, seed_mean
 
     assert group_of("1a2b_c3_340_20") == ("models", "1a2b_c3") and group_of("03_000120") == ("sequences", "03")
     s0 = _per_image(tmp_path, "s0", [0.2, 0.4, None])
@@ -659,16 +667,19 @@ def test_the_bootstrap_averages_seeds_groups_scenes_by_sequence_and_names_missin
     mean = seed_mean([s0, s1])
     assert mean["m0_0_0s", "m0_0_0"]["l1"] == pytest.approx(0.3) and mean["m0_40_0s", "m0_40_0"]["l1"] == 0.6
     views = [f"{s:02d}_{f:06d}" for s in range(4) for f in range(5)]
-    x = seed_mean([_per_image(tmp_path, "x", [0.1 * (k % 4) for k in range(20)], views)])
-    y = seed_mean([_per_image(tmp_path, "y", [0.1 * (k % 4) + 0.01 for k in range(20)], views)])
+    x = read_seeds([_per_image(tmp_path, "x", [0.1 * (k % 4) for k in range(20)], views)])
+    y = read_seeds([_per_image(tmp_path, "y", [0.1 * (k % 4) + 0.01 for k in range(20)], views)])
     gap = paired_gap(x, y, "l1")
     assert gap.unit == "sequences" and (gap.n_groups, gap.n_pairs) == (4, 20)
     assert gap.diff == pytest.approx(-0.01) and gap.lo == pytest.approx(-0.01) and gap.hi == pytest.approx(-0.01)
     lines = sweep.orderings([_ordered_row("p", [s1], 0.1), {"row": "q", "l1": (0.3, None), "ssim_paper": (0, None),
                                                             "paper": {"l1": 0.2}, "dirs": []}], ["l1"])
     assert "p / q: unresolved, no per-image results" in lines[3]
-    one = paired_gap(seed_mean([s1]), seed_mean([s0]), "l1")
+    one = paired_gap(read_seeds([s1]), read_seeds([s0]), "l1")
     assert one.lo is None and "one test model" in one.why
+    # only the pairs every seed of both rows has: s0 lacks pair 2, so a row with s0 and s1 is compared on two
+    both = paired_gap(read_seeds([s0, s1]), read_seeds([s1]), "l1")
+    assert (both.n_pairs, both.seeds, both.diff) == (2, (2, 1), pytest.approx((0.3 - 0.4 + 0.4 - 0.4) / 2))
 
 
 # -- committed job files --------------------------------------------------------------------------------------------
@@ -812,8 +823,8 @@ def test_goals_compare_each_trained_row_with_the_floors_and_their_interval(tmp_p
     by_row = {ln.split(":")[0][2:]: ln for ln in lines[2:] if ln}
     assert set(by_row) == {"good", "close", "edge"}
     assert "L1 0.1200 against copying the source 0.2200: -45.5% [-45.5%, -45.5%]" in by_row["good"]
-    assert by_row["good"].endswith("**met**") and by_row["close"].endswith("**not met**")
-    assert by_row["edge"].endswith("**unresolved**"), by_row["edge"]
+    assert by_row["good"].endswith("**met** (1 seed: good)") and by_row["close"].endswith("**not met** (1 seed: close)")
+    assert by_row["edge"].endswith("**unresolved** (1 seed: edge)"), by_row["edge"]
     assert sweep.goals(rows[:3]) == []  # no floor in the table: nothing to say
 
 
@@ -833,10 +844,10 @@ def test_against_compares_every_trained_row_with_the_base_and_its_interval(tmp_p
             row("copy", base, kind="reference")]
     lines = sweep.against_base(rows, ("absent", "base"), ["l1", "ssim_paper"])
     assert lines == sweep.against_base(rows, ("absent", "base"), ["l1", "ssim_paper"])  # seeded
-    assert lines[0].startswith("Against Base (`base`): Δ = row − base") and "paired bootstrap" in lines[0]
+    assert lines[0].startswith("Against Base (`base`): Δ = row − base") and "two-level bootstrap" in lines[0]
     by_row = {ln.split(":")[0][2:]: ln for ln in lines[2:] if ln}
     assert set(by_row) == {"Lower", "Higher", "Mixed"}  # neither the base nor a reference row
-    assert "L1 0.1700 (↓) Δ -0.05000 [-0.05000, -0.05000] **better**" in by_row["Lower"]
+    assert "L1 0.1700 (↓) Δ -0.05000 [-0.05000, -0.05000] **better** (1 seed: lower, base)" in by_row["Lower"]
     assert "SSIM (paper) 0.8300 (↑) Δ +0.05000 [+0.05000, +0.05000] **better**" in by_row["Lower"]
     assert "L1 0.2500 (↓) Δ +0.03000 [+0.03000, +0.03000] **worse**" in by_row["Higher"]
     assert "**unresolved**" in by_row["Mixed"] and "**better**" not in by_row["Mixed"]

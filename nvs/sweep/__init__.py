@@ -2,9 +2,11 @@
 
 One module per idea: ``study`` (the typed study-file schema, read by ``schema``), ``jobs`` (a job, its status,
 identity and planning), ``launch`` (Hydra multiruns in a subprocess), ``recorder`` (the Hydra callback inside every
-job), ``collect`` (one record per job, the CSV), ``bootstrap`` (the paired bootstrap over test models), ``testset`` (the
-test set a job was measured on), ``goal_lines`` (the converged studies' goals, rows against a base row), ``tables`` (the Markdown tables,
-orderings against the paper, cost tables) and ``__main__`` (the command line). Names are
+job), ``collect`` (one record per job, the CSV), ``bootstrap`` (the two-level bootstrap over seeds and test groups),
+``verdict_trace`` (a verdict per test group: wins, sign test, the groups that undo it), ``testset`` (the test set a
+job was measured on), ``goal_lines`` (the converged studies' goals, rows against a base row), ``paper_order`` (the
+rows against the paper's order), ``per_model_plot`` (their per-model figure), ``tables`` (the Markdown tables, cost
+tables) and ``__main__`` (the command line). Names are
 also reachable as ``nvs.sweep.<name>``, loaded on first use, so that importing ``nvs.sweep.recorder`` inside a
 training job loads nothing else.
 """
@@ -25,9 +27,13 @@ _WHERE = {
     # (the function collect is nvs.sweep.collect.collect: the attribute nvs.sweep.collect is its module)
     "collect": ("CSV_COLUMNS", "COSTS", "SKIP_LEVELS", "SKIP_FRACTIONS", "render_csv", "mean_std", "summarize"),
     "goal_lines": ("GOALS", "against_base", "goals", "test_sets_cell"),
-    "tables": ("PICK_COST", "PICK_L1_TOLERANCE", "orderings", "pick_cheapest", "render_markdown",
-               "provenance", "write_results"),
-    "bootstrap": ("Gap", "group_of", "paired_gap", "seed_mean", "verdict"),
+    "tables": ("PICK_COST", "PICK_L1_TOLERANCE", "pick_cheapest", "render", "render_markdown", "provenance",
+               "write_results"),
+    "paper_order": ("Ordering", "decide", "ordering_lines", "orderings"),
+    "bootstrap": ("Gap", "Paired", "group_of", "pair_up", "paired_gap", "read_seeds", "seed_mean",
+                  "verdict"),
+    "verdict_trace": ("Trace", "sign_test", "flip_set", "trace"),
+    "per_model_plot": ("per_model_png",),
     "__main__": ("run", "main"),
 }
 _MODULE_OF = {name: module for module, names in _WHERE.items() for name in names}

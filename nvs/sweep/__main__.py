@@ -14,8 +14,9 @@ in ``conf/`` changed) is moved to ``<runs>/<scale>/.stale/`` first, so a stale c
 job leaves ``failed.txt`` (its last error line) and is shown as failed in the tables.
 
 Collection writes ``results/<study>.csv`` (one line per job) and ``results/<study>.md`` (mean ± std over seeds
-per row, the paper's numbers beside ours, orderings decided by a paired bootstrap over test models; or, with
-``table: cost``, cost against error with the cheapest row within 1% of the best L1 marked), both atomically.
+per row, the paper's numbers beside ours, orderings decided by a two-level bootstrap over seeds and test models,
+each with a per-model figure ``<study>_per_model_<data>.png``; or, with ``table: cost``, cost against error with the
+cheapest row within 1% of the best L1 marked), both atomically.
 
 Committed jobs: ``--export-jobs`` copies each finished job's small files to ``<results>/jobs/<scale>/``
 (``nvs.sweep.export``); every run treats the jobs found there as done under the same identity and staleness rule,

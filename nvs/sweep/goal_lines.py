@@ -6,7 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from nvs.metric_spec import SPECS
-from nvs.sweep.bootstrap import LEVEL, RESAMPLES, paired_gap, seed_mean, verdict
+from nvs.sweep.bootstrap import LEVEL, interval_words, one_seed_note, paired_gap, read_seeds, verdict
+from nvs.sweep.paper_order import signed
 from nvs.sweep.testset import job_test_set
 
 
@@ -22,13 +23,14 @@ GOALS = (("l1", "copy_source", 0.25, "copying the source"),
 
 
 def goals(rows: list[dict]) -> list[str]:
-    """Markdown lines: each trained, non-oracle row against the floors of ``GOALS``, with the paired bootstrap's
+    """Markdown lines: each trained, non-oracle row against the floors of ``GOALS``, with the two-level bootstrap's
     interval of the relative gap. **met**: the whole interval is at least the goal below the floor; **not met**:
-    the whole interval is short of it; **unresolved**: the interval holds the goal."""
+    the whole interval is short of it; **unresolved**: the interval holds the goal, or an end is within Monte-Carlo
+    error of it."""
     floors = {ref: r for r in rows if r["kind"] == "reference" and (ref := r.get("reference"))}
     trained = [r for r in rows if r["kind"] == "train" and not r["oracle"]]
     cells: list[str] = []
-    per_image: dict[str, dict] = {}
+    per_image: dict[str, list[dict]] = {}
     for r in trained:
         parts = []
         for metric, ref, goal, what in GOALS:
@@ -37,49 +39,51 @@ def goals(rows: list[dict]) -> list[str]:
                 continue
             for x in (r, floor):
                 if x["row"] not in per_image:
-                    per_image[x["row"]] = seed_mean(list(x.get("dirs") or []))
+                    per_image[x["row"]] = read_seeds(list(x.get("dirs") or []))
             base = floor[metric][0]
             if base <= 0:  # an exact floor (e.g. a scene whose depth is one plane): no relative gap to reach
                 parts.append(f"{SPECS[metric].label} {r[metric][0]:.4f} against {what} {base:.4f}: the floor is "
                              "exact, no goal")
                 continue
-            gap = paired_gap(per_image[r["row"]], per_image[floor["row"]], metric)
+            gap = paired_gap(per_image[r["row"]], per_image[floor["row"]], metric, threshold=-goal * base)
             rel = (gap.diff if gap.diff is not None else r[metric][0] - base) / base
             text = f"{SPECS[metric].label} {r[metric][0]:.4f} against {what} {base:.4f}: {100 * rel:+.1f}%"
             if gap.lo is not None:
                 lo, hi = 100 * gap.lo / base, 100 * gap.hi / base
                 text += f" [{lo:+.1f}%, {hi:+.1f}%]"
-                state = "met" if hi <= -100 * goal else "not met" if lo > -100 * goal else "unresolved"
+                state = ("unresolved" if gap.near else "met" if hi <= -100 * goal else "not met" if lo > -100 * goal
+                         else "unresolved")
             else:
                 state = "met" if rel <= -goal else "not met"
                 text += f" ({gap.why or 'no interval'})"
-            parts.append(f"{text}, goal ≤ −{100 * goal:g}%: **{state}**")
+            parts.append(f"{text}, goal ≤ −{100 * goal:g}%: **{state}**{one_seed_note(gap, r['row'], None)}")
         if parts:
             cells.append(f"- {md_cell(r['label'])}: " + "; ".join(parts))
     if not cells:
         return []
     head = (f"Goals of the converged studies: L1 at least 25% below copying the source, depth L1-all at least 30% "
             f"below the constant depth at the training mean. Relative gap on the test pairs both rows were tested "
-            f"on, with its {100 * LEVEL:g}% interval from a paired bootstrap over test models (objects) or sequences "
-            f"(scenes), {RESAMPLES} resamples, seeded; **met** / **not met**: the interval lies beyond / short of the "
-            "goal; **unresolved**: it holds the goal.")
+            f"on, with its {100 * LEVEL:g}% interval from a two-level bootstrap: the trained row's seeds, then the "
+            f"test models (objects) or sequences (scenes); {interval_words()}. **met** / **not met**: the interval "
+            "lies beyond / short of the goal; **unresolved**: it holds the goal, or an end is within Monte-Carlo error "
+            "of it. (1 seed: x): row x has one seed, so its seed spread is missing from the interval.")
     return [head, "", *cells, ""]
 
 
 def against_base(rows: list[dict], bases: tuple[str, ...], metrics: list[str]) -> list[str]:
     """Markdown lines: every other trained row of one table against its base row (the first of ``bases`` the table
-    holds), per metric, Δ = row − base on the test pairs both were tested on, with the paired bootstrap's interval:
+    holds), per metric, Δ = row − base on the test pairs both were tested on, with the two-level bootstrap's interval:
     **better** / **worse** when the interval lies on one side of zero, **unresolved** when it holds zero. [] when
     the table holds no base or the base has no results."""
     base = next((r for name in bases for r in rows if r["row"] == name and r["kind"] == "train"), None)
     if base is None or all(base[m][0] is None for m in metrics):
         return []
-    per_image = {base["row"]: seed_mean(list(base.get("dirs") or []))}
+    per_image = {base["row"]: read_seeds(list(base.get("dirs") or []))}
     cells: list[str] = []
     for r in rows:
         if r is base or r["kind"] != "train" or all(r[m][0] is None for m in metrics):
             continue
-        per_image[r["row"]] = seed_mean(list(r.get("dirs") or []))
+        per_image[r["row"]] = read_seeds(list(r.get("dirs") or []))
         parts = []
         for m in metrics:
             if r[m][0] is None or base[m][0] is None:
@@ -90,21 +94,22 @@ def against_base(rows: list[dict], bases: tuple[str, ...], metrics: list[str]) -
             if gap.diff is None:
                 parts.append(f"{spec.label} {r[m][0]:.{spec.decimals}f}: {gap.why}")
                 continue
-            text = f"{spec.label} {r[m][0]:.{spec.decimals}f} ({spec.arrow}) Δ {gap.diff:+.{d}f}"
+            text = f"{spec.label} {r[m][0]:.{spec.decimals}f} ({spec.arrow}) Δ {signed(gap.diff, d)}"
             if gap.lo is not None:
-                text += f" [{gap.lo:+.{d}f}, {gap.hi:+.{d}f}]"
+                text += f" [{signed(gap.lo, d)}, {signed(gap.hi, d)}]"
             state = {"agree": "better", "swap": "worse", "unresolved": "unresolved"}[
                 verdict(gap, spec.higher_is_better)]
-            parts.append(f"{text} **{state}**")
+            parts.append(f"{text} **{state}**{one_seed_note(gap, r['row'], base['row'])}")
         if parts:
             cells.append(f"- {md_cell(r['label'])}: " + "; ".join(parts))
     if not cells:
         return []
     head = (f"Against {md_cell(base['label'])} (`{base['row']}`): Δ = row − base on the test pairs both were "
-            f"tested on, with its {100 * LEVEL:g}% interval from a paired bootstrap over test models (objects) or "
-            f"sequences (scenes), {RESAMPLES} resamples, seeded; rows with several seeds use each pair's mean over "
-            "seeds. **better** / **worse**: the interval lies on one side of zero (↓: lower is better, ↑: higher); "
-            "**unresolved**: it holds zero.")
+            f"tested on, with its {100 * LEVEL:g}% interval from a two-level bootstrap: each row's seeds, then the "
+            f"test models (objects) or sequences (scenes); {interval_words()}. **better** / **worse**: the interval "
+            "lies on one side of zero (↓: lower is better, ↑: higher); **unresolved**: it holds zero, or an end is "
+            "within Monte-Carlo error of it. (1 seed: x): row x has one seed, so its seed spread is missing from the "
+            "interval.")
     return [head, "", *cells, ""]
 
 

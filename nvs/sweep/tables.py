@@ -1,5 +1,5 @@
 """The study's Markdown: a provenance header, per-dataset tables (the paper's layout or cost against error), and
-orderings of our rows against the paper's, each decided by a paired bootstrap over test models."""
+orderings of our rows against the paper's (``nvs.sweep.paper_order``), with one per-model figure per table."""
 
 from __future__ import annotations
 
@@ -9,12 +9,13 @@ from pathlib import Path
 from nvs.atomic import write_bytes, write_text
 from nvs.metric_spec import IMAGE_METRICS, SPECS
 from nvs.provenance import git_sha, utc_now
-from nvs.sweep.bootstrap import LEVEL, RESAMPLES, Gap, paired_gap, seed_mean, verdict
 from nvs.sweep.collect import SKIP_LEVELS, collect, render_csv, summarize
 from nvs.sweep.convergence_report import convergence_tables, curves_png
 from nvs.sweep.jobs import Job
 from nvs.sweep.study import Study
 from nvs.sweep.goal_lines import against_base, goals, md_cell, test_sets_cell
+from nvs.sweep.paper_order import decide, ordering_lines
+from nvs.sweep.per_model_plot import per_model_png
 
 PICK_L1_TOLERANCE = 0.01
 PICK_COST = "eval_forward_ms_per_image"
@@ -34,6 +35,12 @@ def _fmt_params(n) -> str:
 
 
 def render_markdown(study: Study, records: list[dict], provenance: dict) -> str:
+    """The study's Markdown (``render`` without the figures)."""
+    return render(study, records, provenance)[0]
+
+
+def render(study: Study, records: list[dict], provenance: dict) -> tuple[str, dict[str, bytes]]:
+    """The study's Markdown, and the per-model figures it links to: {file name: PNG}."""
     rows = summarize(study, records)
     # Image metrics always have a column; depth metrics only where some row has them (or the paper does).
     present = [m for m in study.metrics if m in IMAGE_METRICS
@@ -75,11 +82,12 @@ def render_markdown(study: Study, records: list[dict], provenance: dict) -> str:
     if study.table == "convergence":
         lines += [f"![validation L1 against steps and wall time]({study.results_stem}.png)", "",
                   *convergence_tables(records, study.steps)]
+    figures: dict[str, bytes] = {}
     if study.table == "cost":
         lines += _cost_tables(groups, present)
     else:
-        lines += _metrics_tables(groups, present, paper_metrics, study.against)
-    return "\n".join(lines)
+        lines += _metrics_tables(groups, present, paper_metrics, study.against, study.results_stem, figures)
+    return "\n".join(lines), figures
 
 
 def precision_cell(records: list[dict]) -> str:
@@ -118,9 +126,10 @@ def _status(r: dict) -> str:
 
 
 def _metrics_tables(groups: dict[str | None, list[dict]], present: list[str], paper_metrics: list[str],
-                    against: tuple[str, ...] = ()) -> list[str]:
+                    against: tuple[str, ...], stem: str, figures: dict[str, bytes]) -> list[str]:
     """The paper's layout: metrics, parameters, train wall time, eval time per image, the paper's numbers; under
-    each table the orderings against the paper, the rows against the study's base row (``against``), the goals."""
+    each table the orderings against the paper and their per-model figure (added to ``figures``), the rows against
+    the study's base row (``against``), the goals."""
     paper_titles = [f"Paper {'SSIM' if m == 'ssim_paper' else SPECS[m].label}" for m in paper_metrics]
     header = ["Method", "n", *[f"{SPECS[m].label} {SPECS[m].arrow}" for m in present],
               "Params", "Train (s)", "Eval (ms/img)", *paper_titles, "Status"]
@@ -138,69 +147,15 @@ def _metrics_tables(groups: dict[str | None, list[dict]], present: list[str], pa
             cells.append(_status(r))
             lines.append("| " + " | ".join(cells) + " |")
         lines.append("")
-        lines += orderings(grows, paper_metrics)
+        decided = decide(grows, paper_metrics)
+        lines += ordering_lines(grows, decided)
+        if (png := per_model_png(f"{stem}{f' ({group})' if group else ''}", decided)) is not None:
+            name = f"{stem}_per_model{f'_{group}' if group else ''}.png"
+            figures[name] = png
+            lines += [f"![per-model Δ of each ordering]({name})", ""]
         lines += against_base(grows, against, present)
         lines += goals(grows)
     return lines
-
-
-def orderings(rows: list[dict], metrics: list[str]) -> list[str]:
-    """Markdown lines comparing the paper's ranking of a table's rows with ours, per metric.
-
-    Only rows with both a paper number and a measured mean take part; pairs the paper ties are left out. Each pair
-    (A, B), A the paper's better row, is decided by a paired bootstrap over test models on the pairs both rows were
-    tested on (``nvs.sweep.bootstrap``; rows carry their finished job directories in ``dirs``): agree when the 95%
-    interval of ours(A) - ours(B) lies on the paper's side of zero, swap when it lies on the other side, unresolved
-    when it holds zero (or a row has no per-image results). One line per metric with both rankings (best first) and
-    the counts, then one line per pair with its difference and interval.
-    """
-    lines: list[str] = []
-    per_image: dict[str, dict] = {}
-    for m in metrics:
-        ranked = [r for r in rows if m in r["paper"] and r[m][0] is not None]
-        if len(ranked) < 2:
-            continue
-        higher = SPECS[m].higher_is_better
-        sign = -1.0 if higher else 1.0
-        paper = sorted(ranked, key=lambda r: sign * r["paper"][m])
-        ours = sorted(ranked, key=lambda r: sign * r[m][0])
-        counts = collections.Counter()
-        details = []
-        for i, a in enumerate(paper):
-            for b in paper[i + 1:]:
-                if a["paper"][m] == b["paper"][m]:
-                    continue
-                for r in (a, b):
-                    if r["row"] not in per_image:
-                        per_image[r["row"]] = seed_mean(list(r.get("dirs") or []))
-                gap = paired_gap(per_image[a["row"]], per_image[b["row"]], m)
-                verdict_ = verdict(gap, higher)
-                counts[verdict_] += 1
-                details.append(f"  - {a['row']} / {b['row']}: {verdict_}, {_gap_text(gap, SPECS[m].decimals)}")
-        total = sum(counts.values())
-        lines.append(f"- **{SPECS[m].label}** (best first) paper: {' > '.join(r['row'] for r in paper)}; "
-                     f"ours: {' > '.join(r['row'] for r in ours)}; of {total} pairs {counts['agree']} agree, "
-                     f"{counts['swap']} swap, {counts['unresolved']} unresolved")
-        lines += details
-    if not lines:
-        return []
-    head = (f"Orderings against the paper. For each pair A / B (A the paper's better row), Δ = ours(A) − ours(B) "
-            f"on the test pairs both were tested on, with its {100 * LEVEL:g}% interval from a paired bootstrap over "
-            f"test models (objects) or sequences (scenes), {RESAMPLES} resamples, seeded; rows with several seeds "
-            "use each pair's mean over seeds. **agree**: the interval is on the paper's side of zero; **swap**: on "
-            "the other side; **unresolved**: it holds zero.")
-    return [head, "", *lines, ""]
-
-
-def _gap_text(gap: Gap, decimals: int) -> str:
-    if gap.diff is None:
-        return gap.why
-    d = decimals + 1
-    text = f"Δ {gap.diff:+.{d}f}"
-    if gap.lo is not None:
-        text += f" [{gap.lo:+.{d}f}, {gap.hi:+.{d}f}]"
-    text += f" over {gap.n_groups} test {gap.unit} ({gap.n_pairs} pairs)"
-    return text + (f"; {gap.why}" if gap.why else "")
 
 
 def pick_cheapest(rows: list[dict], cost: str = PICK_COST,
@@ -289,7 +244,10 @@ def write_results(study: Study, jobs: list[Job], results_dir: str | Path, comman
     results_dir = Path(results_dir)
     csv_path, md_path = results_dir / f"{study.results_stem}.csv", results_dir / f"{study.results_stem}.md"
     write_text(csv_path, render_csv(records))
-    write_text(md_path, render_markdown(study, records, provenance(records, command)))
+    text, figures = render(study, records, provenance(records, command))
+    write_text(md_path, text)
+    for name, png in figures.items():
+        write_bytes(results_dir / name, png)
     if study.table == "convergence" and (png := curves_png(records)) is not None:
         write_bytes(results_dir / f"{study.results_stem}.png", png)
     return csv_path, md_path
