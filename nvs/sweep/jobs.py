@@ -168,8 +168,8 @@ def config_digest(fingerprint: dict) -> str:
 def config_changes(old: Any, new: Any, prefix: str = "") -> list[str]:
     """The dotted keys that make a result stale: changed or removed ones, and new components (see the module doc)."""
     if not (isinstance(old, dict) and isinstance(new, dict)):
-        key = prefix.rstrip(".")
-        return [] if old == new or (key, old, new) in SAME_BEHAVIOUR else [key or "<config>"]
+        key = prefix.rstrip(".")  # SAME_BEHAVIOUR compared, not hashed: a leaf may be a list
+        return [] if old == new or any(r == (key, old, new) for r in SAME_BEHAVIOUR) else [key or "<config>"]
     out = []
     for k in sorted(set(old) | set(new), key=str):
         if k not in new:
