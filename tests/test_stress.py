@@ -238,8 +238,8 @@ def _guard_run(objects_root, tmp_path, monkeypatch, nonfinite: str, nan: NaNFrom
     OmegaConf.resolve(cfg)
     real = nvs.training.build_module
 
-    def with_nan(c):
-        module = real(c)
+    def with_nan(c, **kwargs):
+        module = real(c, **kwargs)
         module.losses["nan"] = nan
         return module
 
