@@ -68,13 +68,17 @@ def build_module(cfg: DictConfig, channels_last: bool | None = None) -> NVSModul
 
 def _layout(cfg: DictConfig) -> bool:
     value = cfg.get("channels_last", "auto")
-    if isinstance(value, bool):
-        return value
+    return value if isinstance(value, bool) else choose_precision(cfg).channels_last
+
+
+def choose_precision(cfg: DictConfig):
+    """``trainer.precision`` and ``channels_last`` as this run executes them (``auto``: measured, nvs.precision)."""
     from nvs.precision import choose
 
+    trainer = cfg.get("trainer") or {}
     try:
-        return choose(cfg.get("trainer", {}).get("precision", "auto"), value,
-                      cfg.get("trainer", {}).get("accelerator", "auto")).channels_last
+        return choose(trainer.get("precision", "auto"), cfg.get("channels_last", "auto"),
+                      trainer.get("accelerator", "auto"))
     except ValueError as err:
         raise UserError(f"config 'trainer.precision': {err}") from None
 

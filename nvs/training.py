@@ -21,11 +21,11 @@ from hydra.utils import instantiate
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig
 
-from nvs.build import build_data, build_module, parameter_count
+from nvs.build import build_data, build_module, choose_precision, parameter_count
 from nvs.checkpoints import AtomicCheckpointIO
 from nvs.errors import Interrupted, UserError, user_message
 from nvs.fit_callbacks import Interruption, Throughput
-from nvs.precision import Choice, choose
+from nvs.precision import Choice
 from nvs.provenance import device_name, git_sha
 from nvs.quiet import silence_known_noise
 from nvs.run_files import check_writable, is_global_zero, remove_unstarted_run, write_metrics, write_per_image
@@ -139,15 +139,6 @@ def _run(cfg: DictConfig, out_dir: Path, throughput: Throughput) -> dict:
             from None
     finally:
         interruption.restore()
-
-
-def choose_precision(cfg: DictConfig) -> Choice:
-    """``trainer.precision`` and ``channels_last`` as this run executes them (``auto``: measured, nvs.precision)."""
-    try:
-        return choose(cfg.trainer.get("precision", "auto"), cfg.get("channels_last", "auto"),
-                      cfg.trainer.get("accelerator", "auto"))
-    except ValueError as err:
-        raise UserError(f"config 'trainer.precision': {err}") from None
 
 
 def _fit_and_test(cfg: DictConfig, out_dir: Path, trainer: L.Trainer, module, datamodule, callbacks: list,
