@@ -17,10 +17,10 @@ from pathlib import Path
 
 import pandas as pd
 
-from nvs.atomic import write_bytes, write_text
-from nvs.errors import UserError
-from nvs.metric_spec import SPECS
-from nvs.provenance import git_sha, utc_now
+from nvs.core.atomic import write_bytes, write_text
+from nvs.core.errors import UserError
+from nvs.core.metric_spec import SPECS
+from nvs.core.provenance import git_sha, utc_now
 
 # (column, label, True when larger is better), from the one metric specification
 ERRORS = tuple((m, SPECS[m].label, SPECS[m].higher_is_better) for m in ("l1", "ssim_paper"))

@@ -9,9 +9,10 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from nvs.config_check import check_cli_overrides
-from nvs.errors import UserError, exits_cleanly
-from nvs.quiet import silence_known_noise
+from nvs.core.errors import UserError
+from nvs.run.cli import exits_cleanly
+from nvs.run.config_check import check_cli_overrides
+from nvs.run.quiet import silence_known_noise
 from nvs.viewer.build import build_session, pick_source, source_ids
 from nvs.viewer.cloud import file_stem
 from nvs.viewer.paths import camera_path

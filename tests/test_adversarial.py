@@ -7,9 +7,9 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from nvs.build import build_module
-from nvs.losses_adversarial import AdversarialLoss, PatchDiscriminator
-from nvs.types import RGB_BRANCHES
+from nvs.core.types import RGB_BRANCHES
+from nvs.losses.adversarial import AdversarialLoss, PatchDiscriminator
+from nvs.run.build import build_module
 from tests.conftest import compose_train, fixture_batch
 
 

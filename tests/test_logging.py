@@ -18,9 +18,9 @@ from hydra.utils import instantiate
 from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger, WandbLogger
 from PIL import Image
 
-from nvs.callbacks import StepProgressBar
-from nvs.quiet import silence_known_noise
-from nvs.visuals import image_grid
+from nvs.run.display_callbacks import StepProgressBar
+from nvs.run.quiet import silence_known_noise
+from nvs.run.visuals import image_grid
 from tests.conftest import compose_train
 
 REPO = Path(__file__).resolve().parents[1]

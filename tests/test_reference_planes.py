@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 import torch
 
-from nvs.errors import UserError
+from nvs.core.errors import UserError
+from nvs.data.synthetic import write_objects_root, write_scenes_root
 from nvs.models.reference import GroundTruthWarp
 from nvs.models.reference_planes import ConstantDepthWarp, GroundTruthPlaneWarp
-from nvs.synthetic import write_objects_root, write_scenes_root
-from nvs.train_depth import training_mean_depth
+from nvs.run.mean_depth import training_mean_depth
 from tests.conftest import compose_train, fixture_batch
 
 REPO = Path(__file__).resolve().parents[1]
@@ -42,7 +42,7 @@ def _data(cfg) -> dict:
 def test_training_mean_reads_the_training_views_only(tmp_path):
     root = _objects(tmp_path / "objects")
     cfg = compose_train(["data=chairs", f"data.root={root}"])
-    from nvs.build import build_data
+    from nvs.run.build import build_data
 
     train_models = build_data(cfg).fmt.split_models("train", cfg.data.loader.val_fraction, 0)
     assert 0 < len(train_models) <= 3  # validation is carved from the training list

@@ -37,8 +37,8 @@ _WHERE = {
     "__main__": ("run", "main"),
 }
 _MODULE_OF = {name: module for module, names in _WHERE.items() for name in names}
-_SHARED = {"UserError": "nvs.errors", "CONF_DIR": "nvs.compose", "METRICS": "nvs.metric_spec",
-           "IMAGE_METRICS": "nvs.metric_spec", "DEPTH_METRICS": "nvs.metric_spec"}
+_SHARED = {"UserError": "nvs.core.errors", "CONF_DIR": "nvs.run.compose", "METRICS": "nvs.core.metric_spec",
+           "IMAGE_METRICS": "nvs.core.metric_spec", "DEPTH_METRICS": "nvs.core.metric_spec"}
 
 
 def __getattr__(name: str):

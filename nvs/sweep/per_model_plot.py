@@ -7,7 +7,7 @@ import io
 
 import numpy as np
 
-from nvs.metric_spec import SPECS
+from nvs.core.metric_spec import SPECS
 from nvs.sweep.paper_order import Ordering
 
 ROW_INCH = 0.32  # height per ordering

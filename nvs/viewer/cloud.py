@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from nvs.errors import UserError
-from nvs.pointcloud import depth_to_points
+from nvs.core.errors import UserError
+from nvs.report.pointcloud import depth_to_points
 from nvs.viewer.session import ViewSession
 
 
@@ -16,7 +16,7 @@ def view_points(session: ViewSession, key: str, values: dict[str, float],
                 max_depth: float | None = None) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
     """-> xyz (N,3) float32, colours (N,3) uint8 and PLY header comments for source ``key`` at control ``values``.
 
-    Points are in the synthesised view's camera (``nvs.pointcloud``'s convention), coloured by the view.
+    Points are in the synthesised view's camera (``nvs.report.pointcloud``'s convention), coloured by the view.
     """
     view = session.view(key, values)
     if view.depth_values is None:

@@ -1,7 +1,7 @@
 """Published baselines retrained in the same harness (``model=tatarchenko|chen|sun``), plus what they share.
 
 Each network has the same ``forward(batch, needs) -> outputs`` as ``NVSNet`` and lists the extras it can compute in
-``provides``: a loss that needs another extra stops the build (``nvs.build.check_needs``), and one that reads an output
+``provides``: a loss that needs another extra stops the build (``nvs.run.build.check_needs``), and one that reads an output
 the baseline lacks stops at its first read (``BaselineOutputs``), each with one message naming the model, the output
 and the way out.
 """
@@ -12,8 +12,8 @@ from typing import Any
 
 import torch
 
-from nvs.errors import UserError
-from nvs.geometry import about_pivot
+from nvs.core.errors import UserError
+from nvs.core.geometry import about_pivot
 
 # Length of the pose code fed to the baselines' pose branches (see ``pose_code``).
 POSE_DIM = 12

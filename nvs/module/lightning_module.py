@@ -11,10 +11,10 @@ import torch
 import torch.nn as nn
 from lightning.pytorch.utilities import rank_zero_warn
 
-from nvs import metrics as M
-from nvs.errors import UserError
-from nvs.gather import gather_rows, gather_sum
-from nvs.types import Batch
+from nvs.core.errors import UserError
+from nvs.core.types import Batch
+from nvs.metrics import per_image as M
+from nvs.module.gather import gather_rows, gather_sum
 
 
 class NonFiniteLossError(UserError, RuntimeError):
@@ -178,7 +178,7 @@ class NVSModule(L.LightningModule):
             self.test_rows.append(row)
 
     def on_test_epoch_end(self):
-        # Every rank ends with all the test pairs, once each, in dataset order (nvs.gather).
+        # Every rank ends with all the test pairs, once each, in dataset order (nvs.module.gather).
         self._test_rows_seen = gather_sum(float(len(self.test_rows)))
         self.test_forward_s = gather_sum(self.test_forward_s)
         self.test_rows = gather_rows(self.test_rows)

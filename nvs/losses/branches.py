@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import torch
 
-from nvs.losses import LossTerm, up
-from nvs.types import RGB_BRANCHES, Batch, Outputs, to_model_range
+from nvs.core.types import RGB_BRANCHES, Batch, Outputs, to_model_range
+from nvs.losses.terms import LossTerm, up
 
 
 class BranchReconLoss(LossTerm):

@@ -1,6 +1,6 @@
 """Per-image evaluation metrics; every function returns a float32 (B,) tensor, one value per image.
 
-Their names, directions and decimals are ``nvs.metric_spec``'s; the tables below hold exactly its names.
+Their names, directions and decimals are ``nvs.core.metric_spec``'s; the tables below hold exactly its names.
 
 Convention: images are (B,3,H,W) in [0,1]; depths are (B,1,H,W) in scene units with 0 (or non-finite) in the
 ground truth meaning "no data". Inputs of any float dtype (bf16 included) are evaluated in float32.
@@ -15,8 +15,8 @@ import torch
 import torch.nn.functional as F
 from torchmetrics.functional.image import peak_signal_noise_ratio, structural_similarity_index_measure
 
-from nvs import metric_spec
-from nvs.perceptual import LPIPS
+from nvs.core import metric_spec
+from nvs.models.perceptual import LPIPS
 
 # Smallest predicted depth used in ratios and logs, so a non-positive prediction scores a large finite error.
 MIN_PRED_DEPTH = 1e-6
@@ -181,16 +181,16 @@ def depth_sc_inv(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor | None
     return (_masked_mean(d**2, valid) - _masked_mean(d, valid) ** 2).clamp_min(0).sqrt()
 
 
-# The functions under nvs.metric_spec's keys: one list of names, which every table and figure reads.
+# The functions under nvs.core.metric_spec's keys: one list of names, which every table and figure reads.
 _FUNCTIONS: dict[str, Callable[..., torch.Tensor]] = {
     "l1": l1, "ssim_paper": ssim_paper, "ssim": ssim, "psnr": psnr, "lpips": lpips,
     "depth_l1": depth_l1, "depth_l1_rel": depth_l1_rel, "depth_l1_inv": depth_l1_inv, "depth_sc_inv": depth_sc_inv,
 }
 if set(_FUNCTIONS) != set(metric_spec.METRICS):  # a metric added to one list and not the other fails at import
-    raise ImportError(f"nvs.metrics computes {sorted(_FUNCTIONS)} but nvs.metric_spec specifies "
+    raise ImportError(f"nvs.metrics.per_image computes {sorted(_FUNCTIONS)} but nvs.core.metric_spec specifies "
                       f"{sorted(metric_spec.METRICS)}")
 
-# In nvs.metric_spec's order (the per-image CSV's columns).
+# In nvs.core.metric_spec's order (the per-image CSV's columns).
 IMAGE_METRICS: dict[str, Callable[[torch.Tensor, torch.Tensor], torch.Tensor]] = {
     name: _FUNCTIONS[name] for name in metric_spec.IMAGE_METRICS}
 DEPTH_METRICS: dict[str, Callable[..., torch.Tensor]] = {name: _FUNCTIONS[name] for name in metric_spec.DEPTH_METRICS}

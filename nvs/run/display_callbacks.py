@@ -15,7 +15,7 @@ from lightning.pytorch.callbacks import TQDMProgressBar
 from lightning.pytorch.loggers import TensorBoardLogger, WandbLogger
 from PIL import Image
 
-from nvs.visuals import image_grid, to_uint8_hwc
+from nvs.run.visuals import image_grid, to_uint8_hwc
 
 
 class StepProgressBar(TQDMProgressBar):

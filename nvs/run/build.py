@@ -7,10 +7,10 @@ from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from nvs import fidelity
+from nvs.core import fidelity
+from nvs.core.errors import UserError
 from nvs.data.datamodule import NVSDataModule, build_datamodule
-from nvs.errors import UserError
-from nvs.module import NVSModule
+from nvs.module.lightning_module import NVSModule
 
 
 def _instantiate(node, key: str, **kwargs):
@@ -43,7 +43,7 @@ def build_data(cfg: DictConfig) -> NVSDataModule:
 
 def build_module(cfg: DictConfig, channels_last: bool | None = None) -> NVSModule:
     """The run's module; ``channels_last``: the layout chosen for this run (None: ``cfg.channels_last``, where
-    ``auto`` asks nvs.precision)."""
+    ``auto`` asks nvs.run.precision)."""
     try:
         fidelity.check(OmegaConf.to_container(cfg.fidelity, resolve=True) if cfg.get("fidelity") else None)
     except fidelity.FidelityError as err:
@@ -72,8 +72,8 @@ def _layout(cfg: DictConfig) -> bool:
 
 
 def choose_precision(cfg: DictConfig):
-    """``trainer.precision`` and ``channels_last`` as this run executes them (``auto``: measured, nvs.precision)."""
-    from nvs.precision import choose
+    """``trainer.precision`` and ``channels_last`` as this run executes them (``auto``: measured, nvs.run.precision)."""
+    from nvs.run.precision import choose
 
     trainer = cfg.get("trainer") or {}
     try:

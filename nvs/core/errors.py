@@ -1,15 +1,11 @@
 """User-facing errors: one clear message naming the file and line (or config key), no traceback wall.
 
-Exit codes of the entry points: 2 for a problem the user can fix (data, config, checkpoint, a write that the file
-system refused), 128 + signal for an interrupted run (SIGINT 130, SIGTERM 143), 1 for anything else (a bug: its
-traceback is printed).
+The entry points turn them into one line and an exit code (``nvs.run.cli.exits_cleanly``).
 """
 
 from __future__ import annotations
 
-import functools
 import re
-import sys
 from pathlib import Path
 
 
@@ -73,47 +69,9 @@ def user_message(err: BaseException) -> str | None:
             lines = [ln for ln in str(err).splitlines() if ln.strip()]
             last = lines[-1] if lines else str(err)
             return re.sub(r"^[\w.]*(Error|Failed):\s*", "", last.strip())
-        from lightning.fabric.utilities.exceptions import MisconfigurationException
-
-        if isinstance(err, MisconfigurationException):
+        # Lightning's configuration errors, recognised by name: the contract layer imports no framework
+        if any(cls.__name__ == "MisconfigurationException" for cls in type(err).__mro__):
             lines = [ln.strip() for ln in str(err).splitlines() if ln.strip()]
             return f"Lightning: {lines[0] if lines else err.__class__.__name__}"
         err = err.__cause__ or err.__context__
     return None
-
-
-def _multirun() -> bool:
-    try:
-        from hydra.core.hydra_config import HydraConfig
-        from hydra.types import RunMode
-
-        return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
-    except Exception:  # noqa: BLE001 - outside a Hydra app: a plain run
-        return False
-
-
-def exits_cleanly(main):
-    """Wrap an entry point: a user error becomes one line on stderr and exit code 2, an interruption one line and
-    exit 128 + signal. In a multirun a user error fails that job only (:class:`nvs.multirun.MultirunReport` reports
-    the failed jobs at the end)."""
-
-    @functools.wraps(main)
-    def wrapper(*args, **kwargs):
-        try:
-            return main(*args, **kwargs)
-        except Interrupted as sig:
-            print(sig.message, file=sys.stderr)
-            sys.exit(128 + sig.signum)
-        except Exception as err:
-            message = user_message(err)
-            if message is None:
-                raise  # not the user's: Hydra prints the traceback, exit 1
-            print(f"error: {message}", file=sys.stderr)
-            if _multirun():  # this job failed; the multirun goes on and lists it at its end
-                from nvs.multirun import record_failure
-
-                record_failure(f"error: {message}", user_error=True)
-                return None
-            sys.exit(2)
-
-    return wrapper

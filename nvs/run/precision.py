@@ -151,7 +151,7 @@ def probe(refresh: bool = False) -> dict[str, float]:
         ms[mode] = _time_mode(mode, convs, inputs, _PROBE_REPEATS, min(ms.values()) if ms else None)
     cache[key] = {"ms": ms, "date": time.strftime("%Y-%m-%dT%H:%M:%S")}
     with contextlib.suppress(OSError):  # a cache that cannot be written only costs the probe next time
-        from nvs.atomic import write_json
+        from nvs.core.atomic import write_json
 
         write_json(path, cache)
     return ms

@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from nvs.errors import UserError
+from nvs.core.errors import UserError
 
 # Convs per block of VGG16; a 2x2 max-pool precedes every block but the first.
 _BLOCKS = (2, 2, 3, 3, 3)

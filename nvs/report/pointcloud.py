@@ -1,7 +1,7 @@
 """Point clouds of predicted depth: every pixel lifted into 3-D and coloured by the synthesised view; PLY in and out.
 
 Convention: points are in the camera of the view whose depth it is (OpenCV: x right, y down, z forward; pixel
-centres at integer coordinates, as in ``nvs.geometry``), in the data's pose units (ShapeNet: the object at z = 2;
+centres at integer coordinates, as in ``nvs.core.geometry``), in the data's pose units (ShapeNet: the object at z = 2;
 scenes: metres times ``translation_scale``). The PLY is binary little-endian with float32 ``x y z`` and uint8
 ``red green blue`` per vertex, which MeshLab, CloudCompare, Open3D and Blender read. Figure-6-style plots can be
 drawn from ``depth_to_points`` directly.

@@ -12,7 +12,7 @@ import lightning as L
 import torch
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
-from nvs.errors import Interrupted
+from nvs.core.errors import Interrupted
 
 
 class Throughput(L.Callback):

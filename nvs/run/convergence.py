@@ -19,8 +19,8 @@ from pathlib import Path
 
 import lightning as L
 
-from nvs.atomic import write_json
-from nvs.errors import UserError
+from nvs.core.atomic import write_json
+from nvs.core.errors import UserError
 
 RECORD = "convergence.json"
 

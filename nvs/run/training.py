@@ -21,14 +21,14 @@ from hydra.utils import instantiate
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig
 
-from nvs.build import build_data, build_module, choose_precision, parameter_count
-from nvs.checkpoints import AtomicCheckpointIO
-from nvs.errors import Interrupted, UserError, user_message
-from nvs.fit_callbacks import Interruption, Throughput
-from nvs.precision import Choice
-from nvs.provenance import device_name, git_sha
-from nvs.quiet import silence_known_noise
-from nvs.run_files import check_writable, is_global_zero, remove_unstarted_run, write_metrics, write_per_image
+from nvs.core.errors import Interrupted, UserError, user_message
+from nvs.core.provenance import device_name, git_sha
+from nvs.run.artifacts import check_writable, is_global_zero, remove_unstarted_run, write_metrics, write_per_image
+from nvs.run.build import build_data, build_module, choose_precision, parameter_count
+from nvs.run.checkpoints import AtomicCheckpointIO
+from nvs.run.precision import Choice
+from nvs.run.quiet import silence_known_noise
+from nvs.run.standard_callbacks import Interruption, Throughput
 
 
 def resume_command(out_dir: Path) -> str:

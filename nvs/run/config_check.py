@@ -18,8 +18,8 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from nvs.compose import CONF_DIR
-from nvs.errors import UserError
+from nvs.core.errors import UserError
+from nvs.run.compose import CONF_DIR
 # Keys under these roots belong to Hydra itself (run directory, launcher) and are not ours to check.
 _SKIPPED_ROOTS = ("hydra",)
 

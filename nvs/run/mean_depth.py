@@ -12,8 +12,8 @@ import sys
 
 import torch
 
+from nvs.core.errors import UserError
 from nvs.data.datamodule import build_datamodule
-from nvs.errors import UserError
 from nvs.models.reference_planes import ConstantDepthWarp
 
 

@@ -14,8 +14,8 @@ from contextlib import contextmanager
 import torch
 import torch.nn as nn
 
-from nvs.losses import LossTerm, up
-from nvs.types import RGB_BRANCHES, Batch, Outputs, to_model_range
+from nvs.core.types import RGB_BRANCHES, Batch, Outputs, to_model_range
+from nvs.losses.terms import LossTerm, up
 
 
 class PatchDiscriminator(nn.Module):

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
-CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
+CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 
 
 def compose_raw(config_name: str, overrides: list[str] | tuple[str, ...] = ()) -> DictConfig:
@@ -36,7 +36,7 @@ def compose(config_name: str, overrides: list[str] | tuple[str, ...] = (), resol
     """
     from omegaconf import OmegaConf
 
-    from nvs.errors import UserError
+    from nvs.core.errors import UserError
 
     try:
         cfg = compose_raw(config_name, overrides)

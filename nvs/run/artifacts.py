@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from nvs.atomic import write_json, write_text
-from nvs.errors import UserError
+from nvs.core.atomic import write_json, write_text
+from nvs.core.errors import UserError
 
 
 def write_per_image(path: str | Path, rows: list[dict]) -> None:

@@ -2,7 +2,7 @@
 
 Writing (atomically, failing loudly, ``last`` sharing ``best``'s storage):
 - :class:`AtomicCheckpointIO` (a Lightning CheckpointIO plugin, set by ``nvs.train``): ``torch.save`` to memory,
-  then :func:`nvs.atomic.write_bytes` (temp file, fsync, rename). Lightning's own save ignores a PermissionError
+  then :func:`nvs.core.atomic.write_bytes` (temp file, fsync, rename). Lightning's own save ignores a PermissionError
   (the run then trains to the end and finds no checkpoint); here any OSError stops training with one line.
 - :class:`ModelCheckpoint` (conf/callbacks/default.yaml): ``last.ckpt`` written at the same step as the best
   checkpoint is a hard link to it (one copy on disk, ~120 MB saved per run). A later write of either file replaces
@@ -25,12 +25,13 @@ from lightning.pytorch.callbacks import ModelCheckpoint as _LightningModelCheckp
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 from omegaconf import DictConfig, OmegaConf
 
-from nvs.atomic import write_bytes
-from nvs.build import build_module
-from nvs.config_check import model_mismatch
-from nvs.errors import UserError
-from nvs.module import NVSModule
-from nvs.runs import REFERENCE_MODELS
+from nvs.core.atomic import write_bytes
+from nvs.core.errors import UserError
+from nvs.core.legacy import upgrade_targets
+from nvs.models.reference import REFERENCE_MODELS
+from nvs.module.lightning_module import NVSModule
+from nvs.run.build import build_module
+from nvs.run.config_check import model_mismatch
 
 
 class CheckpointWriteError(UserError):
@@ -92,6 +93,7 @@ def load_checkpoint(path: str) -> dict:
         raise UserError(f"{path}: not a readable checkpoint ({err.__class__.__name__}: {err})") from None
     if not isinstance(ckpt, dict) or "state_dict" not in ckpt or not ckpt.get("nvs_config"):
         raise UserError(f"{path}: not an nvs checkpoint (no state_dict / nvs_config)")
+    ckpt["nvs_config"] = upgrade_targets(ckpt["nvs_config"])  # a checkpoint of the flat layout names old modules
     ckpt["path"] = str(path)  # for the messages of restore_module
     return ckpt
 

@@ -1,4 +1,4 @@
-"""Synthetic data of the one data contract (nvs.types): in-memory batches and tiny on-disk datasets in both formats.
+"""Synthetic data of the one data contract (nvs.core.types): in-memory batches and tiny on-disk datasets in both formats.
 
 The one implementation that tests, ``nvs.stress`` and ``nvs.bench`` share. Cameras are the data configs' (pinned
 against ``conf/data/*.yaml`` by tests/test_synthetic.py) scaled to the batch size; poses follow
@@ -13,8 +13,8 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from nvs.geometry import pose_matrix, scale_intrinsics
-from nvs.types import Batch
+from nvs.core.geometry import pose_matrix, scale_intrinsics
+from nvs.core.types import Batch
 
 # kind -> (fx = fy, cx = cy, at size, pivot): conf/data/chairs.yaml (objects) and conf/data/drive.yaml (scenes).
 CAMERAS = {"objects": (480.0, 128.0, 256, (0.0, 0.0, 2.0)), "scenes": (718.9, 128.0, 256, (0.0, 0.0, 0.0))}
@@ -43,7 +43,7 @@ def intrinsics(focal: float, size: int, B: int = 1, centre: float | None = None,
 
 
 def camera(kind: str, size: int) -> torch.Tensor:
-    """K (3,3) of the kind's data config at ``size``^2 (the integer pixel-centre scaling of nvs.geometry)."""
+    """K (3,3) of the kind's data config at ``size``^2 (the integer pixel-centre scaling of nvs.core.geometry)."""
     f, c, at, _ = CAMERAS[_kind(kind)]
     return scale_intrinsics(torch.tensor([[f, 0.0, c], [0.0, f, c], [0.0, 0.0, 1.0]]), size / at)
 
@@ -66,7 +66,7 @@ def synthetic_batch(B: int = 2, S: int = 64, kind: str = "objects",
                     focal: float | None = None, centre: float | None = None, pose: torch.Tensor | None = None,
                     pivot=None, depth: float | tuple[float, float] | None = None,
                     device: torch.device | str | None = None) -> Batch:
-    """A batch of the data contract (nvs.types) for ``kind`` 'objects' or 'scenes'.
+    """A batch of the data contract (nvs.core.types) for ``kind`` 'objects' or 'scenes'.
 
     images: 'random' (uniform noise: src then tgt from one generator seeded ``seed``), 'blobs' (``blob_images``
         with seeds ``seed`` and ``seed + 1``) or an explicit (src, tgt) pair of (B,3,S,S) tensors.

@@ -1,7 +1,7 @@
 """The paper's figures from finished runs: qualitative grids (Fig. 3/4/5), depth point clouds (Fig. 6) and training
 curves, as PNG bytes or files. A library: ``python -m nvs.figures`` and ``python -m nvs.sweep --figures`` draw with it.
 
-Trained runs are rebuilt from their validation-selected checkpoint through ``nvs.checkpoints`` (the one restore, with
+Trained runs are rebuilt from their validation-selected checkpoint through ``nvs.run.checkpoints`` (the one restore, with
 its weight checks); reference runs from their own overrides.
 """
 
@@ -15,16 +15,16 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
-from nvs.atomic import write_bytes
-from nvs.errors import UserError
-from nvs.runs import Run, checkpoint_of
+from nvs.core.atomic import write_bytes
+from nvs.core.errors import UserError
+from nvs.run.finished import Run, checkpoint_of
 
 
 def load_run(run: Run):
     """(module in eval mode, datamodule) rebuilt from a run directory, as ``nvs.evaluate`` rebuilds it."""
-    from nvs.build import build_data
-    from nvs.checkpoints import restore_module, restore_run_config
-    from nvs.compose import compose
+    from nvs.run.build import build_data
+    from nvs.run.checkpoints import restore_module, restore_run_config
+    from nvs.run.compose import compose
 
     # A reference run is rebuilt from its own overrides; a trained run from its checkpoint alone.
     overrides = []

@@ -41,7 +41,7 @@ class MultirunReport(Callback):
         hc = HydraConfig.get()
         if hc.mode != RunMode.MULTIRUN or job_return.status != JobStatus.FAILED:
             return
-        # A bug (user errors never get here: nvs.errors.exits_cleanly records them and returns): its traceback, a
+        # A bug (user errors never get here: nvs.run.cli.exits_cleanly records them and returns): its traceback, a
         # one-line summary for the report, and the job marked done so that the sweeper goes on and ends normally.
         err = job_return._return_value
         traceback.print_exception(type(err), err, err.__traceback__, file=sys.stderr)

@@ -9,11 +9,9 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-from nvs.errors import UserError
+from nvs.core.errors import UserError
+from nvs.models.reference import REFERENCE_MODELS
 
-# Models evaluated without training (nvs.evaluate model=...), the floors and ceilings of every table: copying the
-# source, the ground-truth warp, the constant depth at the training views' mean, each test image's ground-truth plane.
-REFERENCE_MODELS = ("copy_source", "gt_warp", "mean_depth", "gt_plane")
 
 
 @dataclass

@@ -1,7 +1,7 @@
 """Loss terms, one class each: ``term(outputs, batch) -> scalar`` (unweighted); the module applies ``weight``.
 
-Each class declares ``needs``: the network extras (see ``nvs.types.Extras``) it reads, so a forward computes
-only what the enabled losses use; ``check_network`` is its build-time check against the network (``nvs.build``).
+Each class declares ``needs``: the network extras (see ``nvs.core.types.Extras``) it reads, so a forward computes
+only what the enabled losses use; ``check_network`` is its build-time check against the network (``nvs.run.build``).
 Every option is resolved in ``__init__`` (a function or a tuple chosen once), so ``forward`` tests no flag.
 Image-space terms are computed on the [-1,1] range, as the paper's code does.
 """
@@ -12,11 +12,11 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from nvs.choices import check_choice
-from nvs.errors import UserError
-from nvs.perceptual import VGG16Features
-from nvs.scales import UPSAMPLES, upsample_side
-from nvs.types import Batch, Extras, Outputs, to_model_range
+from nvs.core.choices import check_choice
+from nvs.core.errors import UserError
+from nvs.core.scales import UPSAMPLES, upsample_side
+from nvs.core.types import Batch, Extras, Outputs, to_model_range
+from nvs.models.perceptual import VGG16Features
 
 
 def up(x: torch.Tensor) -> torch.Tensor:
