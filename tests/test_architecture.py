@@ -7,6 +7,7 @@ hides a dependency, it does not remove it).
 from __future__ import annotations
 
 import ast
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -208,3 +209,26 @@ def test_the_sweep_recorder_loads_no_heavy_library():
 def test_provenance_loads_no_lightning():
     code = "import sys, nvs.core.provenance; sys.exit(1 if 'lightning' in sys.modules else 0)"
     assert subprocess.run([sys.executable, "-c", code], timeout=120).returncode == 0
+
+
+def test_the_tree_in_docs_architecture_is_the_tree():
+    # docs/architecture.md draws the layers as a tree: each folder with its layer number, the modules of the
+    # library folders by name, the CLIs at the root. A module added, moved or removed without the map fails here.
+    text = (PKG.parent / "docs" / "architecture.md").read_text()
+    block = text.split("```", 2)[1]
+    words = set(re.findall(r"[\w.]+", block))
+    drawn: dict[str, int] = {}
+    lines = block.splitlines()
+    for i, line in enumerate(lines):
+        head = re.match(r"^  ((?:\w+/ ?)+)\s*(\d)?\s", line + " ")
+        if not head:
+            continue
+        level = head.group(2) or re.match(r"^\s+(\d)\s", lines[i + 1]).group(1)
+        for folder in re.findall(r"(\w+)/", head.group(1)):
+            drawn[f"nvs.{folder}"] = int(level)
+    assert drawn == FOLDERS, f"folders and layers drawn {drawn} != {FOLDERS}"
+    named = ("nvs.core", "nvs.losses", "nvs.metrics", "nvs.module", "nvs.run", "nvs.report")
+    missing = sorted(n for n in SOURCES if _under(n, named) and n not in named and n.rsplit(".", 1)[1] not in words)
+    assert not missing, f"modules not named in docs/architecture.md's tree: {missing}"
+    root_clis = sorted(p.name for p in PKG.glob("*.py") if p.name != "__init__.py")
+    assert [c for c in root_clis if c not in words] == [], "a CLI at the root is not drawn"
