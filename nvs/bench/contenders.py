@@ -15,6 +15,7 @@ import torch
 
 from nvs.bench.measure import state_bytes
 from nvs.bench.reference import Reference
+from nvs.core.protocols import HasCritic
 from nvs.data.synthetic import synthetic_batch
 from nvs.run.compose import compose
 
@@ -74,7 +75,7 @@ def nvs_contender(overrides: list[str], mode: str, batches: Batches, device: tor
     module = build_module(train_config(overrides, size, root_dir, channels_last)).to(device)
     opt = module.configure_optimizers()
     opt = opt["optimizer"] if isinstance(opt, dict) else opt
-    critics = [t for t in module.losses.values() if hasattr(t, "update_critic")]
+    critics = [t for t in module.losses.values() if isinstance(t, HasCritic)]
 
     def autocast():
         return torch.autocast(device.type, dtype=dtype) if dtype else contextlib.nullcontext()

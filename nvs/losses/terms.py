@@ -14,6 +14,7 @@ import torch.nn.functional as F
 
 from nvs.core.choices import check_choice
 from nvs.core.errors import UserError
+from nvs.core.protocols import MultiScale
 from nvs.core.scales import UPSAMPLES, upsample_side
 from nvs.core.types import Batch, Extras, Outputs, to_model_range
 from nvs.models.perceptual import VGG16Features
@@ -61,7 +62,7 @@ class ReconLoss(LossTerm):
         self.side_upsample = check_choice(side_upsample, UPSAMPLES, "side_upsample")
 
     def check_network(self, net: nn.Module, key: str) -> None:
-        n_scales = getattr(net, "n_scales", None)
+        n_scales = net.n_scales if isinstance(net, MultiScale) else None
         if n_scales is not None and len(self.scale_weights) > n_scales:
             raise UserError(f"{key}.scale_weights has {len(self.scale_weights)} weights but the model predicts "
                             f"{n_scales} scale(s); use loss=[recon_final,...] or {key}.scale_weights=[1.0]")

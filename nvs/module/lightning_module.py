@@ -12,6 +12,7 @@ import torch.nn as nn
 from lightning.pytorch.utilities import rank_zero_warn
 
 from nvs.core.errors import UserError
+from nvs.core.protocols import CountsSkips, HasCritic, ParamGroups
 from nvs.core.types import Batch
 from nvs.metrics import per_image as M
 from nvs.module.gather import gather_rows, gather_sum
@@ -53,6 +54,9 @@ class NVSModule(L.LightningModule):
         # What the enabled losses read, fixed at build time.
         self.train_needs = frozenset().union(*(term.needs for term in losses.values())) if losses else frozenset()
         self.test_rows: list[dict] = []
+        self.test_rows_seen: float | None = None  # forwards of all ranks in the last test epoch, padding included
+        # the resolved run config, set by the build (nvs.run.build), saved with every checkpoint
+        self.run_config: dict | None = None
         self._val_rows: list[dict] = []
         self.test_forward_s = 0.0
         self._constant_terms_warned = False
@@ -60,7 +64,7 @@ class NVSModule(L.LightningModule):
             self.net.to(memory_format=torch.channels_last)
         self._compiled: Callable | None = None
         if compile_step:
-            critics = [name for name, term in losses.items() if hasattr(term, "update_critic")]
+            critics = [name for name, term in losses.items() if isinstance(term, HasCritic)]
             if critics:
                 rank_zero_warn(f"compile=true: the training step stays eager (loss term(s) {', '.join(critics)} "
                                "step a critic between the forward and the losses)")
@@ -103,7 +107,7 @@ class NVSModule(L.LightningModule):
             out = self(batch, self.train_needs)
             # Terms that own a critic (adversarial) train it first, on detached predictions, with its own optimiser.
             for name, term in self.losses.items():
-                if hasattr(term, "update_critic"):
+                if isinstance(term, HasCritic):
                     for key, value in term.update_critic(out, batch).items():
                         self.log(f"train/{name}/{key}", value, batch_size=bs)
             total, values = self.loss(out, batch)
@@ -179,7 +183,7 @@ class NVSModule(L.LightningModule):
 
     def on_test_epoch_end(self):
         # Every rank ends with all the test pairs, once each, in dataset order (nvs.module.gather).
-        self._test_rows_seen = gather_sum(float(len(self.test_rows)))
+        self.test_rows_seen = gather_sum(float(len(self.test_rows)))
         self.test_forward_s = gather_sum(self.test_forward_s)
         self.test_rows = gather_rows(self.test_rows)
 
@@ -191,11 +195,11 @@ class NVSModule(L.LightningModule):
 
     def _skip_counters(self) -> list[nn.Module]:
         # Components that skip work per sample (adaptive skips) count what they skipped; see skip_fractions().
-        return [m for m in self.net.modules() if hasattr(m, "skip_fractions")]
+        return [m for m in self.net.modules() if isinstance(m, CountsSkips)]
 
     def test_forward_ms_per_image(self) -> float | None:
         """Forward time alone (no metrics) per test pair of the last test epoch."""
-        seen = getattr(self, "_test_rows_seen", None) or len(self.test_rows)  # forwards of all ranks, padding too
+        seen = self.test_rows_seen or len(self.test_rows)  # forwards of all ranks, padding too
         return 1000 * self.test_forward_s / seen if self.test_rows else None
 
     def test_summary(self) -> dict[str, float]:
@@ -215,7 +219,7 @@ class NVSModule(L.LightningModule):
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         # The resolved run config travels with the weights so that evaluation can rebuild the same network.
-        checkpoint["nvs_config"] = getattr(self, "run_config", None)
+        checkpoint["nvs_config"] = self.run_config
         # Frozen loss networks (VGG) are rebuilt from their weight file, not stored 30 MB at a time; terms that train
         # something of their own (an adversarial critic) are kept, so a resumed run continues with them.
         frozen = tuple(f"losses.{name}." for name, term in self.losses.items()
@@ -231,7 +235,7 @@ class NVSModule(L.LightningModule):
         # The network's parameters only: a loss term with trainable parts (a critic) steps them with its own optimiser.
         params = [p for p in self.net.parameters() if p.requires_grad]
         # A network may split them into groups with their own settings (Sun et al.: the pixel module at half the lr).
-        groups = self.net.param_groups() if hasattr(self.net, "param_groups") else params
+        groups = self.net.param_groups() if isinstance(self.net, ParamGroups) else params
         optimizer = self.optimizer_factory(groups)
         for group in optimizer.param_groups:
             group["lr"] *= group.get("lr_scale", 1.0)

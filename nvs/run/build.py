@@ -9,6 +9,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from nvs.core import fidelity
 from nvs.core.errors import UserError
+from nvs.core.protocols import ListsExtras, LossTermLike
 from nvs.data.datamodule import NVSDataModule, build_datamodule
 from nvs.module.lightning_module import NVSModule
 
@@ -87,17 +88,17 @@ def check_losses(model: str, net: torch.nn.Module, losses: dict[str, torch.nn.Mo
     """Build time: every enabled loss can be computed on the network's outputs (one clear error otherwise)."""
     check_needs(model, net, losses)
     for name, term in losses.items():
-        if hasattr(term, "check_network"):
+        if isinstance(term, LossTermLike):
             term.check_network(net, f"loss.{name}")
 
 
 def check_needs(model: str, net: torch.nn.Module, losses: dict[str, torch.nn.Module]) -> None:
     """One clear error when the enabled losses need extras (``term.needs``) that the network does not list in its
     ``provides`` (a network without that list, such as ``NVSNet``, computes every extra)."""
-    provides = getattr(net, "provides", None)
-    if provides is None:
+    if not isinstance(net, ListsExtras):
         return
-    needs = frozenset().union(*(getattr(term, "needs", frozenset()) for term in losses.values()))
+    provides = net.provides
+    needs = frozenset().union(*(term.needs for term in losses.values() if isinstance(term, LossTermLike)))
     missing = sorted(needs - frozenset(provides))
     if missing:
         have = ", ".join(sorted(provides)) or "none"

@@ -17,6 +17,7 @@ import torch
 import torch.nn as nn
 
 from nvs.core.errors import UserError
+from nvs.core.protocols import EncodeOnce
 from nvs.viewer.controls import ObjectControls, SceneControls
 from nvs.viewer.images import decode_upload, depth_to_uint8, to_uint8
 
@@ -73,7 +74,7 @@ class ViewSession:
         self.uploads: OrderedDict[str, Source] = OrderedDict()
         self._encoded: OrderedDict[str, object] = OrderedDict()
         # Capability, not config: a network that can be split is split.
-        self.splits = callable(getattr(net, "encode", None)) and callable(getattr(net, "render", None))
+        self.splits = isinstance(net, EncodeOnce)
         self.encoder_runs = 0
 
     # -- sources ---------------------------------------------------------------------------------------------------
