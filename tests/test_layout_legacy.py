@@ -80,7 +80,7 @@ def test_a_committed_study_stays_done_and_would_go_stale_without_the_map(monkeyp
     flat = {j.dir.name for j in jobs if any(t.rpartition(".")[0] in MOVED for t in _targets(
         json.loads((j.dir / "sweep_job.json").read_text())["config"]))}
     assert flat, "no job of the study recorded a flat-layout target"
-    monkeypatch.setattr(sweep_jobs, "upgrade_targets", lambda node: node)
+    monkeypatch.setattr(sweep_jobs, "as_today", lambda node: node)
     done = {j.dir.name for j in plan(study, tmp_path / "runs", (), exported) if j.status == Status.DONE}
     assert not done & flat
 

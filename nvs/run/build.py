@@ -31,15 +31,18 @@ def build_data(cfg: DictConfig) -> NVSDataModule:
     if not isinstance(d.size, int) or d.size <= 0:
         raise UserError(f"config 'data.size' must be a positive integer, got {d.size!r}")
     try:
-        return build_datamodule(
-            fmt=d.format, root=d.root, size=d.size,
-            camera=OmegaConf.to_container(d.camera, resolve=True),
-            loader=OmegaConf.to_container(d.loader, resolve=True),
-            seed=int(cfg.seed), category=d.get("category"),
-            translation_scale=float(d.translation_scale), max_delta_azimuth=int(d.max_delta_azimuth),
-            train_fraction=d.get("train_fraction", 1.0))
+        return build_datamodule(seed=int(cfg.seed), **datamodule_arguments(OmegaConf.to_container(d, resolve=True)))
     except TypeError as err:
         raise UserError(f"config 'data': {err}") from None
+
+
+def datamodule_arguments(data: dict) -> dict:
+    """The data config as ``build_datamodule``'s arguments: what the run reads, and what ``model=mean_depth`` reads
+    its training split with."""
+    return dict(fmt=data["format"], root=data["root"], size=data["size"], camera=dict(data["camera"]),
+                loader=dict(data["loader"]), category=data.get("category"),
+                translation_scale=float(data.get("translation_scale", 1.0)),
+                max_delta_azimuth=int(data.get("max_delta_azimuth", 40)), train_fraction=data.get("train_fraction", 1.0))
 
 
 def build_module(cfg: DictConfig, channels_last: bool | None = None) -> NVSModule:

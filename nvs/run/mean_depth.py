@@ -15,17 +15,17 @@ import torch
 from nvs.core.errors import UserError
 from nvs.data.datamodule import build_datamodule
 from nvs.models.reference_planes import ConstantDepthWarp
+from nvs.run.build import datamodule_arguments
 
 
 def training_mean_depth(data: dict, seed: int = 0) -> float:
     """Mean of the valid (> 0) ground-truth depths of the training views, in the data's units (scenes: scaled).
 
-    ``data``: the data config's ``fmt`` (format), ``root``, ``size``, ``camera``, ``loader``, ``category``,
-    ``translation_scale``, ``max_delta_azimuth``, ``train_fraction`` (as ``conf/model/mean_depth.yaml`` passes them).
+    ``data``: the run's data config, resolved (``conf/model/mean_depth.yaml`` passes ``${data}``).
     """
     try:
-        dm = build_datamodule(seed=seed, **data)
-    except TypeError as err:
+        dm = build_datamodule(seed=seed, **datamodule_arguments(data))
+    except (TypeError, KeyError) as err:
         raise UserError(f"config 'model.data' (model=mean_depth): {err}") from None
     if not dm.fmt.has_depth:
         raise UserError(f"model=mean_depth: {data['root']} has no depth/ files to take the training mean from")

@@ -33,8 +33,9 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from nvs.core.atomic import write_json
-from nvs.core.legacy import SAME_BEHAVIOUR, upgrade_targets
+from nvs.core.legacy import SAME_BEHAVIOUR
 from nvs.run.compose import compose
+from nvs.sweep.recorded import as_today
 from nvs.sweep.recorder import FAILED, STDERR
 from nvs.sweep.study import Row, Study
 
@@ -207,7 +208,7 @@ def stale_reason(record: dict | None, key: str, fingerprint: dict | None) -> str
     if fingerprint is None:
         return "" if record.get("key") == key else "the row's overrides changed"
     same = record.get("digest") == config_digest(fingerprint)
-    changed = [] if same else config_changes(upgrade_targets(record.get("config")), fingerprint)
+    changed = [] if same else config_changes(as_today(record.get("config")), fingerprint)
     if changed:
         return f"config changed: {', '.join(changed[:6])}"
     if record.get("version") is not None and record.get("key") != key:
