@@ -15,8 +15,8 @@ from omegaconf import OmegaConf
 from nvs.core.errors import UserError
 from nvs.core.geometry import inverse_warp, pose_matrix
 from nvs.core.types import RGB_BRANCHES, Extras
-from nvs.models.baselines import halvings, pose_code
 from nvs.models.baselines.chen import warp_border
+from nvs.models.baselines.common import halvings, pose_code
 from nvs.models.baselines.sun import Sun
 from nvs.models.baselines.tatarchenko import Tatarchenko
 from nvs.run.build import build_module

@@ -15,6 +15,7 @@ import torch
 import torch.nn as nn
 
 from nvs.core.types import RGB_BRANCHES, Batch, Outputs, to_model_range
+from nvs.core.weight_init import xavier_convs
 from nvs.losses.terms import LossTerm, up
 
 
@@ -36,10 +37,7 @@ class PatchDiscriminator(nn.Module):
         for cin, cout in zip((3,) + chans[:-1], chans):
             layers += [nn.Conv2d(cin, cout, 4, stride=2, padding=1), nn.LeakyReLU(0.2)]
         self.body = nn.Sequential(*layers, nn.Conv2d(chans[-1], 1, 1))
-        for m in self.modules():
-            if isinstance(m, nn.Conv2d):
-                nn.init.xavier_uniform_(m.weight)
-                nn.init.zeros_(m.bias)
+        xavier_convs(self)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.body(x)

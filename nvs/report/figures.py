@@ -7,7 +7,6 @@ its weight checks); reference runs from their own overrides.
 
 from __future__ import annotations
 
-import io
 import textwrap
 from pathlib import Path
 
@@ -17,6 +16,7 @@ from omegaconf import OmegaConf
 
 from nvs.core.atomic import write_bytes
 from nvs.core.errors import UserError
+from nvs.report.png import figure_png
 from nvs.run.finished import Run, checkpoint_of
 
 
@@ -68,12 +68,7 @@ def unproject(depth: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
 
 
 def _png(fig) -> bytes:
-    import matplotlib.pyplot as plt
-
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    return buf.getvalue()
+    return figure_png(fig, dpi=110, tight=True)
 
 
 def _img(t: torch.Tensor) -> np.ndarray:

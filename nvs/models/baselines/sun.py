@@ -7,7 +7,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from nvs.core.types import RGB_BRANCHES, Batch, Outputs, to_image_range, to_model_range
-from nvs.models.baselines import POSE_DIM, BaselineOutputs, pose_code
+from nvs.core.weight_init import xavier_convs
+from nvs.models.baselines.common import POSE_DIM, BaselineOutputs, pose_code
 
 # Decoder widths of Sun et al.'s joint decoder, stage by stage from the bottleneck up (its output layers use half
 # of the last one).
@@ -195,11 +196,7 @@ instead of their two Adams. The adversarial term on the pixel module is the
         chans = self.flow_encoder.channels
         self.flow_decoder = SunDecoder(chans, 3, n_res=n_res_flow, skips=False)  # flow (x, y) + confidence
         self.pixel_decoder = SunDecoder(chans, 4, n_res=n_res_pixel, skips=True)  # RGB + confidence
-        # TF-slim's default initialiser.
-        for m in self.modules():
-            if isinstance(m, nn.Conv2d):
-                nn.init.xavier_uniform_(m.weight)
-                nn.init.zeros_(m.bias)
+        xavier_convs(self)  # TF-slim's default initialiser
 
     def param_groups(self) -> list[dict]:
         """Optimiser groups: the flow module at the optimiser's settings, the pixel module at ``pixel_lr_scale`` times

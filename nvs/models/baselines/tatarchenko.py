@@ -6,7 +6,7 @@ import torch
 import torch.nn as nn
 
 from nvs.core.types import Batch, Outputs, to_image_range, to_model_range
-from nvs.models.baselines import POSE_DIM, BaselineOutputs, halvings, pose_code
+from nvs.models.baselines.common import POSE_DIM, BaselineOutputs, halvings, pose_code
 from nvs.models.blocks import act, down, up_transposed
 
 
