@@ -76,7 +76,7 @@ def test_a_pair_decided_two_ways_or_a_missing_table_is_one_clear_error(rows, tmp
     results.mkdir()
     _table(results, "one", {k: rows[k] for k in ("a", "b")}, {"a": 0.06, "b": 0.08})
     _table(results, "two", {"a": rows["s"], "b": rows["a"]}, {"a": 0.06, "b": 0.08})  # measured the other way
-    with pytest.raises(UserError, match=r"two\.md: a / b on l1 \(chairs\) is agree here but swap in one\.md"):
+    with pytest.raises(UserError, match=r"two\.md: a / b on l1 \(chairs\) is swap here but agree in one\.md"):
         tally(results, {"one": ("l1",), "two": ("l1",)})
     with pytest.raises(UserError, match=r"three\.csv: no such table CSV"):
         tally(results, {"three": ("l1",)})
