@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from nvs import sweep
-from nvs.errors import UserError
+from nvs.core.errors import UserError
 from nvs.sweep.bootstrap import pair_up, read_seeds
 from nvs.sweep.paper_tally import summary, tally
 from tests.test_sweep import _ordered_row, _per_image

@@ -18,8 +18,8 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from nvs.errors import UserError
-from nvs.metric_spec import SPECS
+from nvs.core.errors import UserError
+from nvs.core.metric_spec import SPECS
 
 # Tables 1-4 and the metrics of their orderings counted: L1 (Tables 1-3) and the depth errors (Table 4)
 TABLES: dict[str, tuple[str, ...]] = {
