@@ -54,3 +54,31 @@ def test_a_byte_order_mark_in_poses_txt_is_accepted(scenes_root, tmp_path):
     poses.write_bytes(b"\xef\xbb\xbf" + poses.read_bytes())
     fmt = ScenesFormat(root)
     assert "00_000000" in fmt.poses and fmt.pairs("train", 0.1, 0)  # the first id is the first frame's, not "\ufeff..."
+
+
+# -- nvs.convert -------------------------------------------------------------------------------------------------------
+def _convert(argv, capsys) -> tuple[int, str]:
+    from nvs import convert
+
+    with pytest.raises(SystemExit) as exit_:
+        convert.main(argv)
+    return exit_.value.code, capsys.readouterr().err
+
+
+def test_convert_out_under_a_missing_folder_is_one_line(tmp_path, capsys):
+    out = tmp_path / "missing" / "deeper" / "nvs.ckpt"
+    code, err = _convert([str(tmp_path), "--out", str(out)], capsys)
+    assert code == 2 and err.splitlines() == [
+        f"error: --out {out}: the folder {out.parent} does not exist (create it first)"], err
+    assert not (tmp_path / "missing").exists()
+
+
+def test_convert_of_a_pickled_module_is_one_line(tmp_path, capsys):
+    torch.save(torch.nn.Linear(2, 2), tmp_path / "0_net_enc.pth")
+    for net in ("dec", "depthdec"):
+        torch.save({}, tmp_path / f"0_net_{net}.pth")
+    code, err = _convert([str(tmp_path), "--out", str(tmp_path / "nvs.ckpt")], capsys)
+    assert code == 2 and err.splitlines() == [
+        f"error: {tmp_path / '0_net_enc.pth'}: not a plain state_dict: it pickles the Python object "
+        "torch.nn.modules.linear.Linear (a whole network?); save net.state_dict() instead"], err
+    assert "\x1b[" not in err and not (tmp_path / "nvs.ckpt").exists()
