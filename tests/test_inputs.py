@@ -82,3 +82,39 @@ def test_convert_of_a_pickled_module_is_one_line(tmp_path, capsys):
         f"error: {tmp_path / '0_net_enc.pth'}: not a plain state_dict: it pickles the Python object "
         "torch.nn.modules.linear.Linear (a whole network?); save net.state_dict() instead"], err
     assert "\x1b[" not in err and not (tmp_path / "nvs.ckpt").exists()
+
+
+# -- nvs.evaluate --------------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def small_ckpt(tmp_path_factory, objects_root):
+    """An untrained tatarchenko checkpoint at 64^2 on the fixture objects (what evaluate reads back)."""
+    from omegaconf import OmegaConf
+
+    from nvs.build import build_module
+    from tests.conftest import compose_train
+
+    tmp = tmp_path_factory.mktemp("small_ckpt")
+    cfg = compose_train([*SMALL, f"paths.root_dir={tmp}", f"data.root={objects_root}"])
+    cfg.paths.output_dir = str(tmp)
+    OmegaConf.resolve(cfg)
+    module = build_module(cfg)
+    path = tmp / "model.ckpt"
+    torch.save({"state_dict": module.state_dict(), "nvs_config": module.run_config, "global_step": 0}, path)
+    return path
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["data.size=128"], "data.size=128: a checkpoint is evaluated at the size it was trained at; drop data.size"),
+    (["+data.size=128"], "data.size=128: {ckpt} was trained at 64x64 and is evaluated at that size; drop data.size"),
+    (["model=chen"], "model=chen: nvs.evaluate builds only the reference models from model= "
+                     "(copy_source|gt_warp|mean_depth|gt_plane); a trained model comes from its checkpoint"),
+    (["limit=0"], "limit=0: expected a positive number of test pairs (limit=null: all of them)"),
+])
+def test_evaluate_overrides_it_cannot_honour_are_one_line(small_ckpt, tmp_path, monkeypatch, extra, message):
+    out = tmp_path / "eval"
+    code, stderr = _cli("evaluate", [f"ckpt_path={small_ckpt}", f"out_dir={out}", f"hydra.run.dir={tmp_path / 'h'}",
+                                     *extra], monkeypatch)
+    lines = _error_lines(stderr)
+    assert code == 2 and "Traceback" not in stderr and len(lines) == 1, stderr[-3000:]
+    assert message.format(ckpt=small_ckpt) in lines[0], lines[0]
+    assert not out.exists() and not (tmp_path / "h").exists()
