@@ -118,3 +118,75 @@ def test_evaluate_overrides_it_cannot_honour_are_one_line(small_ckpt, tmp_path, 
     assert code == 2 and "Traceback" not in stderr and len(lines) == 1, stderr[-3000:]
     assert message.format(ckpt=small_ckpt) in lines[0], lines[0]
     assert not out.exists() and not (tmp_path / "h").exists()
+
+
+# -- runs that would train nothing, or crash inside the optimiser or the Trainer ----------------------------------------
+@pytest.mark.parametrize("extra, message", [
+    (["optim.lr=-1"], "config 'optim.lr': expected a positive learning rate, got -1"),
+    (["+optim.weight_decay=-1"], "config 'optim': Invalid weight_decay value: -1"),
+    (["trainer.val_check_interval=0"], "config 'trainer.val_check_interval': expected a positive number of steps"),
+    (["trainer.max_steps=0"], "config 'trainer.max_steps=0': no training step would run"),
+    (["data.loader.batch_size=1000"], "data.loader.batch_size=1000: larger than the 108 training pairs; the partial "
+                                      "batch is dropped, so no step would run"),
+    (["trainer.limit_train_batches=0"], "no training step ran"),
+])
+def test_a_run_that_would_train_nothing_or_crash_is_one_line(objects_root, tmp_path, monkeypatch, extra, message):
+    run_dir = tmp_path / "run"
+    code, stderr = _cli("train", [f"data.root={objects_root}", f"hydra.run.dir={run_dir}", *TRAIN, *SMALL, *extra],
+                        monkeypatch)
+    lines = _error_lines(stderr)
+    assert code == 2 and "Traceback" not in stderr and len(lines) == 1, stderr[-3000:]
+    assert message in lines[0], lines[0]
+    assert not run_dir.exists()  # no metrics.json of an untrained network
+
+
+# -- a resume must train what it records -----------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def trained_run(objects_root, tmp_path_factory):
+    """A 2-step tatarchenko run's directory (last.ckpt at step 2) and the arguments that made it."""
+    import contextlib
+    import io
+    import sys
+
+    from nvs import train
+
+    run_dir = tmp_path_factory.mktemp("resume") / "run"
+    args = [f"data.root={objects_root}", f"hydra.run.dir={run_dir}", *TRAIN, *SMALL]
+    mp = pytest.MonkeyPatch()
+    try:
+        code, stderr = _cli("train", args, mp)
+    finally:
+        mp.undo()
+    assert code == 0, stderr[-3000:]
+    return run_dir, args
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["optim.lr=0.5"], "cannot resume with other settings (optim.lr: the checkpoint has 0.0001, the command asks for "
+                       "0.5); a resume restores the optimiser's state (its learning rate included)"),
+    (["model=chen", "loss=[recon_final]"], "cannot resume with other settings (model._target_: the checkpoint has "
+                                           "'nvs.models.baselines"),
+    (["data.size=128", "data.loader.with_depth=false"], "cannot resume with other settings (data.size: the checkpoint has 64, the command asks for "
+                        "128)"),
+])
+def test_a_resume_with_another_lr_model_or_size_is_refused(trained_run, monkeypatch, extra, message):
+    run_dir, args = trained_run
+    last = run_dir / "checkpoints" / "last.ckpt"
+    before = (last.stat().st_mtime_ns, json.loads((run_dir / "metrics.json").read_text()))
+    code, stderr = _cli("train", [*args, "trainer.max_steps=4", *extra], monkeypatch)
+    lines = _error_lines(stderr)
+    assert code == 2 and "Traceback" not in stderr and len(lines) == 1, stderr[-3000:]
+    assert lines[0].startswith(f"error: {last}: ") and message in lines[0], lines[0]
+    assert (last.stat().st_mtime_ns, json.loads((run_dir / "metrics.json").read_text())) == before
+
+
+def test_lightnings_state_dict_error_on_resume_is_one_line():
+    from nvs.run_checks import resume_load_error
+
+    a, b = torch.nn.Linear(2, 3), torch.nn.Sequential(torch.nn.Linear(2, 2))
+    with pytest.raises(RuntimeError) as err:
+        a.load_state_dict(b.state_dict())
+    out = resume_load_error(err.value, "run/checkpoints/last.ckpt")
+    assert isinstance(out, UserError) and "\n" not in str(out)
+    assert str(out).startswith("run/checkpoints/last.ckpt: does not fit this run's model (Missing key(s)")
+    assert resume_load_error(RuntimeError("another failure"), "x.ckpt") is None
