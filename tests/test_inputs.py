@@ -190,3 +190,41 @@ def test_lightnings_state_dict_error_on_resume_is_one_line():
     assert isinstance(out, UserError) and "\n" not in str(out)
     assert str(out).startswith("run/checkpoints/last.ckpt: does not fit this run's model (Missing key(s)")
     assert resume_load_error(RuntimeError("another failure"), "x.ckpt") is None
+
+
+# -- paths Hydra's grammar cannot read bare ----------------------------------------------------------------------------
+def _parsed(override: str):
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    return OverridesParser.create().parse_overrides([override])[0].value()
+
+
+@pytest.mark.parametrize("value", ["/tmp/plain/run", "/tmp/é", "/tmp/日本 語/run", "/tmp/it's", "/tmp/a,b", "/tmp/x\\",
+                                   "/tmp/x\\'y"])
+def test_hydra_value_reads_back_as_the_same_path(value):
+    from nvs.config_check import hydra_value
+
+    assert _parsed(f"k={hydra_value(value)}") == value
+    assert (hydra_value(value) == value) == (value in ("/tmp/plain/run", "/tmp/x\\"))  # quoted only where needed
+
+
+def test_the_printed_resume_command_runs_for_a_non_ascii_run_directory(tmp_path):
+    import shlex
+
+    from nvs.training import resume_command
+
+    out = tmp_path / "runs" / "café 1"
+    argv = shlex.split(resume_command(out))
+    assert argv[:3] == ["python", "-m", "nvs.train"] and argv[-1].startswith("hydra.run.dir=")
+    assert _parsed(argv[-1]) == str(out)
+
+
+def test_sweep_runs_under_a_non_ascii_directory_give_hydra_a_readable_sweep_dir(tmp_path):
+    from nvs import sweep
+    from tests.test_sweep import _study
+
+    study = _study(tmp_path)
+    root = tmp_path / "résultats" / "64px_10steps"
+    cmd = sweep.multirun_command(study, study.rows[0], [0, 1], root, sweep.Launch(jobs=1, threads=1))
+    (sweep_dir,) = [c for c in cmd if c.startswith("hydra.sweep.dir=")]
+    assert _parsed(sweep_dir) == str(root.resolve())

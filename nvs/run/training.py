@@ -26,6 +26,7 @@ from nvs.core.provenance import device_name, git_sha
 from nvs.run.artifacts import check_writable, is_global_zero, remove_unstarted_run, write_metrics, write_per_image
 from nvs.run.build import build_data, build_module, choose_precision, parameter_count
 from nvs.run.checkpoints import AtomicCheckpointIO
+from nvs.run.config_check import hydra_value
 from nvs.run.precision import Choice
 from nvs.run.quiet import silence_known_noise
 from nvs.run.run_checks import check_batches, check_resume, check_run_config, check_trained, resume_load_error
@@ -35,7 +36,8 @@ from nvs.run.standard_callbacks import Interruption, Throughput
 def resume_command(out_dir: Path) -> str:
     """The command that resumes this run: the same overrides, with the run directory pinned."""
     task = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
-    return shlex.join(["python", "-m", "nvs.train", *task, f"hydra.run.dir={out_dir}"])
+    # Hydra-quoted where its grammar needs it (non-ASCII, spaces, commas), then shell-quoted: it runs as printed.
+    return shlex.join(["python", "-m", "nvs.train", *task, f"hydra.run.dir={hydra_value(str(out_dir))}"])
 
 
 def _trainer(cfg: DictConfig, **kwargs) -> L.Trainer:

@@ -20,6 +20,7 @@ from pathlib import Path
 
 from nvs.core.atomic import write_text
 from nvs.core.errors import UserError
+from nvs.run.config_check import hydra_value
 from nvs.sweep import recorder
 from nvs.sweep.jobs import Job, Status, is_hydra, refresh, row_overrides
 from nvs.sweep.recorder import FAILED, STDERR
@@ -61,7 +62,7 @@ def multirun_command(study: Study, row: Row, seeds: list[int], root: Path, launc
     module = "nvs.evaluate" if row.reference else "nvs.train"
     return [sys.executable, "-m", module, "-m", *row_overrides(study, row, extra),
             "seed=" + ",".join(str(s) for s in seeds),
-            f"hydra.sweep.dir={root.resolve()}", f"hydra.sweep.subdir={row.run}_s${{seed}}",
+            f"hydra.sweep.dir={hydra_value(str(root.resolve()))}", f"hydra.sweep.subdir={row.run}_s${{seed}}",
             f"+hydra.callbacks.nvs_sweep._target_={recorder.TARGET}",
             f"+hydra.callbacks.nvs_sweep.threads={launch.threads}", *launch.hydra_overrides]
 
