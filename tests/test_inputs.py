@@ -228,3 +228,110 @@ def test_sweep_runs_under_a_non_ascii_directory_give_hydra_a_readable_sweep_dir(
     cmd = sweep.multirun_command(study, study.rows[0], [0, 1], root, sweep.Launch(jobs=1, threads=1))
     (sweep_dir,) = [c for c in cmd if c.startswith("hydra.sweep.dir=")]
     assert _parsed(sweep_dir) == str(root.resolve())
+
+
+# -- sweeps: one sweep per job, and no orphaned training process --------------------------------------------------------
+def _gone(pid: int) -> bool:
+    """The process has exited (a zombie nobody reaped counts as exited)."""
+    import os
+
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] in ("Z", "X")
+    except FileNotFoundError:
+        return True
+
+
+def _wait(predicate, timeout: float = 20.0) -> bool:
+    import time
+
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(0.05)
+    return predicate()
+
+
+def test_a_job_lock_excludes_a_second_sweep_and_dies_with_its_holder(tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from nvs.sweep.lock import JobLocks
+    from tests.test_reliability import REPO
+
+    first, second = JobLocks(tmp_path), JobLocks(tmp_path)
+    assert first.acquire("full_s0") is None
+    held = second.acquire("full_s0")
+    assert held is not None and held.startswith(f"pid {os.getpid()} on ")
+    assert second.acquire("full_s1") is None  # other jobs are free
+    first.release()
+    assert second.acquire("full_s0") is None
+    second.release()
+    # a sweep killed with -9 leaves its lock file behind, but not its lock
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from nvs.sweep.lock import JobLocks; "
+                               f"assert JobLocks(sys.argv[1]).acquire('full_s0') is None; print('held', flush=True); "
+                               "time.sleep(60)", str(tmp_path)], cwd=REPO, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        assert first.acquire("full_s0") == f"pid {holder.pid} on " + held.split(" on ", 1)[1].split(",")[0] + \
+            ", since " + json.loads(first.path("full_s0").read_text())["since"]
+        holder.send_signal(signal.SIGKILL)
+        holder.wait(timeout=10)
+        assert first.path("full_s0").exists() and first.acquire("full_s0") is None
+    finally:
+        holder.kill()
+        first.release()
+
+
+def test_a_sweep_skips_the_jobs_another_sweep_holds(tmp_path, monkeypatch, capsys):
+    from nvs.sweep import __main__ as sweep_main
+    from nvs.sweep.lock import JobLocks
+
+    study = tmp_path / "ref.yaml"
+    study.write_text(json.dumps({"name": "ref", "title": "t", "paper_source": "none", "seeds": [0, 1], "size": 64,
+                                 "steps": 2, "rows": [{"name": "copy", "reference": "copy_source", "data": "chairs"},
+                                                      {"name": "warp", "reference": "gt_warp", "data": "chairs"}]}))
+    launched = []
+    monkeypatch.setattr(sweep_main, "launch_row", lambda study, jobs, *a, **k: launched.extend(jobs) or jobs)
+    monkeypatch.setattr(sweep_main, "check_launch", lambda *a: None)
+    runs = tmp_path / "runs"
+    other = JobLocks(runs / "64px_2steps")  # another sweep, running job s0
+    assert other.acquire("copy_s0") is None
+    try:
+        code = sweep_main.run([str(study), "--runs", str(runs), "--results", str(tmp_path / "results")])
+    finally:
+        other.release()
+    err = capsys.readouterr().err
+    assert [j.dir.name for j in launched] == ["warp_s0"] and code == 1, err
+    assert "[sweep] copy s0: skipped, another sweep is running it (pid " in err
+
+
+def test_killing_a_sweep_with_sigkill_ends_its_training_child(tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from tests.test_reliability import REPO
+
+    pidfile = tmp_path / "child.pid"
+    child = f"import os, time; open({str(pidfile)!r}, 'w').write(str(os.getpid())); time.sleep(120)"
+    parent = subprocess.Popen([sys.executable, "-c", "import os, sys; from nvs.sweep.launch import _run_streaming; "
+                               f"_run_streaming([sys.executable, '-c', {child!r}], dict(os.environ))"], cwd=REPO)
+    try:
+        assert _wait(lambda: pidfile.exists() and pidfile.read_text().strip()), "the child never started"
+        pid = int(pidfile.read_text())
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(timeout=10)
+        assert _wait(lambda: _gone(pid), timeout=10), "the child outlived its sweep"
+    finally:
+        parent.kill()
+        if pidfile.exists() and not _gone(int(pidfile.read_text())):
+            os.kill(int(pidfile.read_text()), signal.SIGKILL)
