@@ -335,3 +335,53 @@ def test_killing_a_sweep_with_sigkill_ends_its_training_child(tmp_path):
         parent.kill()
         if pidfile.exists() and not _gone(int(pidfile.read_text())):
             os.kill(int(pidfile.read_text()), signal.SIGKILL)
+
+
+# -- the viewer's uploads ------------------------------------------------------------------------------------------------
+def _big_png(side: int) -> bytes:
+    """A valid 1-bit PNG of side^2 pixels, all black, in a few kB (what a decompression bomb looks like)."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+    row = b"\x00" * (1 + (side + 7) // 8)  # filter byte + packed bits
+    compressor = zlib.compressobj(9)
+    idat = b"".join(compressor.compress(row) for _ in range(side)) + compressor.flush()
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", side, side, 1, 0, 0, 0, 0))
+            + chunk(b"IDAT", idat) + chunk(b"IEND", b""))
+
+
+def test_an_upload_whose_header_declares_too_many_pixels_is_refused_before_decoding():
+    from nvs.viewer.images import MAX_UPLOAD_PIXELS, decode_upload
+
+    data = _big_png(8000)  # 64 megapixels in a few kB; decoding would take ~200 MB as RGB
+    assert len(data) < 200_000 and 8000 * 8000 > MAX_UPLOAD_PIXELS
+    with pytest.raises(UserError, match=r"photo.png: image too large \(8000x8000 pixels; the viewer takes at most 50 "
+                                        r"megapixels\)"):
+        decode_upload(data, 64, "photo.png")
+    assert decode_upload(_big_png(100), 64).shape == (3, 64, 64)
+
+
+def test_a_malformed_multipart_body_is_a_400_with_one_line(tmp_path):
+    import asyncio
+
+    from aiohttp.test_utils import TestClient, TestServer
+
+    from nvs.viewer.server import build_app
+    from tests.test_viewer import _net, _session
+
+    app = build_app(_session(_net(tmp_path, "model=tatarchenko")), {"model": "tatarchenko"})
+
+    async def probe():
+        async with TestClient(TestServer(app)) as client:
+            bad = await client.post("/api/upload", data=b"--xyz\r\nnot a part header at all",
+                                    headers={"Content-Type": "multipart/form-data; boundary=xyz"})
+            missing = await client.post("/api/upload", data=b"garbage",
+                                        headers={"Content-Type": "multipart/form-data"})
+            return [(r.status, await r.json()) for r in (bad, missing)]
+
+    for status, body in asyncio.run(probe()):
+        assert status == 400 and body["error"].startswith("malformed upload: not a multipart form"), (status, body)
+        assert "\n" not in body["error"] and "Traceback" not in body["error"]
