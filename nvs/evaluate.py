@@ -94,8 +94,8 @@ def check_composes(argv: list[str]) -> None:
         return
     from hydra.errors import HydraException
 
-    from nvs.compose import compose_raw
-    from nvs.runs import REFERENCE_MODELS
+    from nvs.run.compose import compose_raw
+    from nvs.run.finished import REFERENCE_MODELS
 
     try:
         compose_raw("evaluate", argv)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from nvs.errors import DataError, UserError
+from nvs.core.errors import DataError, UserError
 from tests.test_reliability import SMALL, TRAIN, _cli, _copy, _error_lines
 
 
@@ -90,7 +90,7 @@ def small_ckpt(tmp_path_factory, objects_root):
     """An untrained tatarchenko checkpoint at 64^2 on the fixture objects (what evaluate reads back)."""
     from omegaconf import OmegaConf
 
-    from nvs.build import build_module
+    from nvs.run.build import build_module
     from tests.conftest import compose_train
 
     tmp = tmp_path_factory.mktemp("small_ckpt")
@@ -144,12 +144,6 @@ def test_a_run_that_would_train_nothing_or_crash_is_one_line(objects_root, tmp_p
 @pytest.fixture(scope="module")
 def trained_run(objects_root, tmp_path_factory):
     """A 2-step tatarchenko run's directory (last.ckpt at step 2) and the arguments that made it."""
-    import contextlib
-    import io
-    import sys
-
-    from nvs import train
-
     run_dir = tmp_path_factory.mktemp("resume") / "run"
     args = [f"data.root={objects_root}", f"hydra.run.dir={run_dir}", *TRAIN, *SMALL]
     mp = pytest.MonkeyPatch()
@@ -181,7 +175,7 @@ def test_a_resume_with_another_lr_model_or_size_is_refused(trained_run, monkeypa
 
 
 def test_lightnings_state_dict_error_on_resume_is_one_line():
-    from nvs.run_checks import resume_load_error
+    from nvs.run.run_checks import resume_load_error
 
     a, b = torch.nn.Linear(2, 3), torch.nn.Sequential(torch.nn.Linear(2, 2))
     with pytest.raises(RuntimeError) as err:
@@ -202,7 +196,7 @@ def _parsed(override: str):
 @pytest.mark.parametrize("value", ["/tmp/plain/run", "/tmp/é", "/tmp/日本 語/run", "/tmp/it's", "/tmp/a,b", "/tmp/x\\",
                                    "/tmp/x\\'y"])
 def test_hydra_value_reads_back_as_the_same_path(value):
-    from nvs.config_check import hydra_value
+    from nvs.run.config_check import hydra_value
 
     assert _parsed(f"k={hydra_value(value)}") == value
     assert (hydra_value(value) == value) == (value in ("/tmp/plain/run", "/tmp/x\\"))  # quoted only where needed
@@ -211,7 +205,7 @@ def test_hydra_value_reads_back_as_the_same_path(value):
 def test_the_printed_resume_command_runs_for_a_non_ascii_run_directory(tmp_path):
     import shlex
 
-    from nvs.training import resume_command
+    from nvs.run.training import resume_command
 
     out = tmp_path / "runs" / "café 1"
     argv = shlex.split(resume_command(out))

@@ -21,6 +21,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from nvs.core.errors import UserError
+from nvs.core.legacy import upgrade_targets
 from nvs.run.config_check import model_mismatch
 
 
@@ -89,6 +90,7 @@ def check_resume(cfg: DictConfig, ckpt_path: str | Path | None) -> None:
     held = ckpt.get("nvs_config") if isinstance(ckpt, dict) else None
     if not held:
         return
+    held = upgrade_targets(held)  # a checkpoint of the flat layout names old modules
     asked = OmegaConf.to_container(cfg, resolve=True)
     why = "a resume continues the checkpoint's run"
     diff = model_mismatch(asked.get("model") or {}, held.get("model") or {})
