@@ -236,7 +236,10 @@ class NVSModule(L.LightningModule):
         params = [p for p in self.net.parameters() if p.requires_grad]
         # A network may split them into groups with their own settings (Sun et al.: the pixel module at half the lr).
         groups = self.net.param_groups() if isinstance(self.net, ParamGroups) else params
-        optimizer = self.optimizer_factory(groups)
+        try:
+            optimizer = self.optimizer_factory(groups)
+        except ValueError as err:  # torch's own range checks (betas, eps, weight_decay): the user's config
+            raise UserError(f"config 'optim': {err}") from None
         for group in optimizer.param_groups:
             group["lr"] *= group.get("lr_scale", 1.0)
         if self.scheduler_factory is None:

@@ -26,15 +26,18 @@ from nvs.core.provenance import device_name, git_sha
 from nvs.run.artifacts import check_writable, is_global_zero, remove_unstarted_run, write_metrics, write_per_image
 from nvs.run.build import build_data, build_module, choose_precision, parameter_count
 from nvs.run.checkpoints import AtomicCheckpointIO
+from nvs.run.config_check import hydra_value
 from nvs.run.precision import Choice
 from nvs.run.quiet import silence_known_noise
+from nvs.run.run_checks import check_batches, check_resume, check_run_config, check_trained, resume_load_error
 from nvs.run.standard_callbacks import Interruption, Throughput
 
 
 def resume_command(out_dir: Path) -> str:
     """The command that resumes this run: the same overrides, with the run directory pinned."""
     task = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
-    return shlex.join(["python", "-m", "nvs.train", *task, f"hydra.run.dir={out_dir}"])
+    # Hydra-quoted where its grammar needs it (non-ASCII, spaces, commas), then shell-quoted: it runs as printed.
+    return shlex.join(["python", "-m", "nvs.train", *task, f"hydra.run.dir={hydra_value(str(out_dir))}"])
 
 
 def _trainer(cfg: DictConfig, **kwargs) -> L.Trainer:
@@ -105,6 +108,7 @@ def _run(cfg: DictConfig, out_dir: Path, throughput: Throughput) -> dict:
     silence_known_noise()
     L.seed_everything(int(cfg.seed), workers=True)
     torch.set_float32_matmul_precision("high")
+    check_run_config(cfg)
     datamodule = build_data(cfg)
     fast_dev_run = bool(cfg.trainer.get("fast_dev_run"))
     testing = bool(cfg.test) and not fast_dev_run
@@ -131,6 +135,8 @@ def _run(cfg: DictConfig, out_dir: Path, throughput: Throughput) -> dict:
     interruption = Interruption(ckpt_dir / "last.ckpt", resume_command(out_dir))
     trainer = _trainer(cfg, callbacks=callbacks + [throughput, interruption], logger=loggers or False,
                        plugins=[AtomicCheckpointIO()], precision=choice.precision)
+    if not fast_dev_run:
+        check_batches(int(cfg.data.loader.batch_size), len(datamodule.dataset("train")), trainer.world_size)
     interruption.install()
     try:
         return _fit_and_test(cfg, out_dir, trainer, module, datamodule, callbacks, throughput, choice, testing)
@@ -143,7 +149,16 @@ def _run(cfg: DictConfig, out_dir: Path, throughput: Throughput) -> dict:
 
 def _fit_and_test(cfg: DictConfig, out_dir: Path, trainer: L.Trainer, module, datamodule, callbacks: list,
                   throughput: Throughput, choice: Choice, testing: bool) -> dict:
-    trainer.fit(module, datamodule=datamodule, ckpt_path=_resume_path(cfg, out_dir))
+    resume = _resume_path(cfg, out_dir)
+    check_resume(cfg, resume)
+    try:
+        trainer.fit(module, datamodule=datamodule, ckpt_path=resume)
+    except RuntimeError as err:
+        mismatch = resume_load_error(err, resume)
+        if mismatch is None:
+            raise
+        raise mismatch from None
+    check_trained(int(trainer.global_step))
     result = {
         "model": module.model_name,
         "data": cfg.data.name,
