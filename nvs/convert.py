@@ -121,6 +121,7 @@ def convert(paths: list[str], data: str = "chairs", epoch: str | None = None, ou
     from nvs.atomic import write_bytes
     from nvs.build import build_module
     from nvs.compose import compose
+    from nvs.weights_digest import stamp
 
     files = find_files(paths, epoch)
     epoch = files["enc"].name.split("_net_")[0]
@@ -135,6 +136,7 @@ def convert(paths: list[str], data: str = "chairs", epoch: str | None = None, ou
     dest = Path(out) if out else files["enc"].parent / f"{epoch}_nvs.ckpt"
     ckpt = {"state_dict": weights, "nvs_config": module.run_config,
             "converted_from": {n: str(files[n]) for n in NETWORKS}, "epoch": 0, "global_step": 0}
+    stamp(ckpt)  # checked on every load, like a checkpoint nvs trained
     buf = io.BytesIO()
     torch.save(ckpt, buf)
     write_bytes(dest, buf.getvalue())

@@ -15,10 +15,18 @@ from nvs import metrics as M
 from nvs.errors import UserError
 from nvs.gather import gather_rows, gather_sum
 from nvs.types import Batch
+from nvs.weights_digest import stamp
 
 
 class NonFiniteLossError(UserError, RuntimeError):
-    """Raised when the training loss becomes NaN/Inf and the guard is set to stop."""
+    """Raised when the training loss, a gradient or a weight becomes NaN/Inf (and for a loss or a gradient the guard
+    is set to stop)."""
+
+
+def all_finite(tensors: list[torch.Tensor]) -> bool:
+    """Every element of every tensor is finite (one fused max-abs per tensor: no overflow, NaN propagates)."""
+    tensors = [t for t in tensors if t.numel()]
+    return not tensors or bool(torch.isfinite(torch.stack(torch._foreach_norm(tensors, ord=float("inf")))).all())
 
 
 class NVSModule(L.LightningModule):
@@ -28,7 +36,8 @@ class NVSModule(L.LightningModule):
         net: the network.
         losses: name -> loss term (each with ``weight`` and ``needs``).
         optimizer: partial optimizer factory taking the parameters.
-        nonfinite: 'stop' raises on a NaN/Inf loss (the last good checkpoint stays), 'skip' drops that step.
+        nonfinite: 'stop' raises on a NaN/Inf loss or gradient (the last good checkpoint stays), 'skip' drops that
+            step; NaN/Inf weights after a step always stop the run (a diverged run would otherwise score a constant).
         channels_last: run convolutions in channels_last memory format.
         val_metrics: image metrics logged on the validation split (model selection uses ``val/l1``).
         compile_step: ``torch.compile`` the training step's forward and losses together (backward follows the
@@ -56,6 +65,7 @@ class NVSModule(L.LightningModule):
         self._val_rows: list[dict] = []
         self.test_forward_s = 0.0
         self._constant_terms_warned = False
+        self._skipped_grads = False
         if channels_last:
             self.net.to(memory_format=torch.channels_last)
         self._compiled: Callable | None = None
@@ -121,6 +131,28 @@ class NVSModule(L.LightningModule):
                 f"({', '.join(f'{n}' for n in self.losses)}); the last good checkpoint is kept. "
                 "Set nonfinite=skip to drop such steps instead.")
         return total
+
+    def on_before_optimizer_step(self, optimizer) -> None:
+        # A non-finite gradient makes the weights non-finite while the loss can still look finite (saturated outputs):
+        # caught here like a non-finite loss.
+        params = [p for p in self.net.parameters() if p.grad is not None]
+        if all_finite([p.grad for p in params]):
+            return
+        if self.nonfinite == "skip":
+            for p in params:  # the optimiser steps no parameter without a gradient
+                p.grad = None
+            self._skipped_grads = True
+            return
+        raise NonFiniteLossError(f"non-finite gradient at step {self.global_step}; the last good checkpoint is kept. "
+                                 "Lower optim.lr, or set nonfinite=skip to drop such steps.")
+
+    def on_train_batch_end(self, outputs, batch, batch_idx) -> None:
+        if self._skipped_grads:
+            self._skipped_grads = False
+            self.log("train/skipped_nonfinite", 1.0, reduce_fx="sum", batch_size=batch["src"].shape[0])
+        if not all_finite([p.detach() for p in self.net.parameters()]):
+            raise NonFiniteLossError(f"non-finite weights after step {self.global_step} (the optimiser step diverged); "
+                                     "the last good checkpoint is kept. Lower optim.lr.")
 
     def loss(self, out, batch: Batch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """The weighted training loss and its raw terms: ``(sum_i w_i * term_i, {name: term_i})``."""
@@ -222,6 +254,11 @@ class NVSModule(L.LightningModule):
                        if not any(p.requires_grad for p in term.parameters()))
         for key in [k for k in checkpoint["state_dict"] if k.startswith(frozen)]:
             del checkpoint["state_dict"][key]
+        weights = [v for v in checkpoint["state_dict"].values() if torch.is_tensor(v) and v.is_floating_point()]
+        if not all_finite(weights):  # never a best (or last) checkpoint of a diverged network
+            raise NonFiniteLossError(f"non-finite weights at step {self.global_step}: checkpoint not written; the last "
+                                     "good checkpoint is kept. Lower optim.lr.")
+        stamp(checkpoint)  # the content hash every load checks
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
         own = {k: v for k, v in super().state_dict().items() if k.startswith("losses.") and k not in state_dict}
