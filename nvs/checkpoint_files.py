@@ -41,7 +41,8 @@ def read_checkpoint(path: str | Path, mmap: bool = False) -> dict:
     p = Path(path)
     if not p.is_file():
         raise UserError(f"ckpt_path={path}: no such checkpoint")
-    check_complete(p)
+    if zipfile.is_zipfile(p):  # (torch's legacy format is no zip: torch.load judges it)
+        check_complete(p)
     try:
         ckpt = torch.load(p, map_location="cpu", weights_only=False, mmap=mmap)
     except Exception as err:  # noqa: BLE001 - any unpickling failure is a bad file for the user
@@ -95,5 +96,8 @@ def resume_checkpoint(ckpt_path: str | None, directory: str | Path) -> tuple[str
         path = newest[0]
     else:
         path = Path(ckpt_path)
+        if not path.is_file():
+            raise UserError(f"ckpt_path={ckpt_path}: no such checkpoint")
+    check_complete(path)  # what a kill during a write leaves is named as such
     ckpt = read_checkpoint(path, mmap=True)
     return str(path), int(ckpt.get("global_step", 0)) if isinstance(ckpt, dict) else 0

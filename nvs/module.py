@@ -150,9 +150,11 @@ class NVSModule(L.LightningModule):
         if self._skipped_grads:
             self._skipped_grads = False
             self.log("train/skipped_nonfinite", 1.0, reduce_fx="sum", batch_size=batch["src"].shape[0])
-        if not all_finite([p.detach() for p in self.net.parameters()]):
-            raise NonFiniteLossError(f"non-finite weights after step {self.global_step} (the optimiser step diverged); "
-                                     "the last good checkpoint is kept. Lower optim.lr.")
+        # Parameters and floating buffers (normalisation statistics diverge too, from activations out of range).
+        state = [t.detach() for t in (*self.net.parameters(), *self.net.buffers()) if t.is_floating_point()]
+        if not all_finite(state):
+            raise NonFiniteLossError(f"non-finite weights after step {self.global_step} (training diverged); the last "
+                                     "good checkpoint is kept. Lower optim.lr.")
 
     def loss(self, out, batch: Batch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """The weighted training loss and its raw terms: ``(sum_i w_i * term_i, {name: term_i})``."""
