@@ -24,9 +24,17 @@ class NonFiniteLossError(UserError, RuntimeError):
 
 
 def all_finite(tensors: list[torch.Tensor]) -> bool:
-    """Every element of every tensor is finite (one fused max-abs per tensor: no overflow, NaN propagates)."""
+    """Every element of every tensor is finite.
+
+    A fused 2-norm per tensor is finite when the tensor is (NaN and inf propagate) and is the fast path (~10 ms for
+    the full model's 11.7M weights on 2 CPU threads, where a max-abs takes 140); a norm that overflows on finite
+    values over 1e19 is then checked element by element.
+    """
     tensors = [t for t in tensors if t.numel()]
-    return not tensors or bool(torch.isfinite(torch.stack(torch._foreach_norm(tensors, ord=float("inf")))).all())
+    if not tensors:
+        return True
+    finite = torch.isfinite(torch.stack([n.float() for n in torch._foreach_norm(tensors)]))
+    return bool(finite.all()) or all(bool(torch.isfinite(t).all()) for t, ok in zip(tensors, finite.tolist()) if not ok)
 
 
 class NVSModule(L.LightningModule):

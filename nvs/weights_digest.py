@@ -1,8 +1,8 @@
 """A content hash of a checkpoint's weights, stored when it is written and checked whenever it is read.
 
 A zip member's CRC only says the bytes match what the zip writer saw; torch does not check it on load, and a CRC
-recomputed after an edit passes. The hash covers every tensor's key, dtype, shape and values (in logical order, so a
-channels_last tensor and its contiguous copy hash alike).
+recomputed after an edit passes. The hash covers every tensor's key, dtype, shape, memory layout and values
+(torch.save and torch.load keep a tensor's layout: the tensors hashed at save time are those hashed at load time).
 """
 
 from __future__ import annotations
@@ -27,10 +27,20 @@ def digest(state_dict: Mapping[str, torch.Tensor]) -> str:
         if not torch.is_tensor(value):
             h.update(repr(value).encode() + b"\0")
             continue
-        t = value.detach().cpu().contiguous().reshape(-1)
-        h.update(f"{t.dtype}{tuple(value.shape)}\0".encode())
-        h.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+        t, layout = _dense(value.detach().cpu())
+        h.update(f"{t.dtype}{tuple(value.shape)}{layout}\0".encode())
+        h.update(t.reshape(-1).view(torch.uint8).numpy() if t.numel() else b"")  # the buffer itself, no copy
     return h.hexdigest()
+
+
+def _dense(t: torch.Tensor) -> tuple[torch.Tensor, str]:
+    """``t`` as a contiguous tensor over the same memory where it is one (a channels_last weight is its NHWC
+    permutation: copying it to NCHW would cost more than the hash), and the layout's name."""
+    if t.is_contiguous():
+        return t, ""
+    if t.dim() == 4 and t.is_contiguous(memory_format=torch.channels_last):
+        return t.permute(0, 2, 3, 1), "nhwc"
+    return t.contiguous(), ""
 
 
 def stamp(checkpoint: dict) -> None:

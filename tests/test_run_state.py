@@ -26,6 +26,9 @@ from nvs.weights_digest import KEY, digest
 from tests.conftest import compose_train, fixture_batch
 from tests.test_reliability import SMALL, TRAIN, _cli, _error_lines
 
+# Tatarchenko with a narrow merge layer: 2M weights, a 24 MB checkpoint (its default is 13M and 156 MB)
+TINY = [*SMALL, "model.fc_dim=64"]
+
 
 # -- 1. the user's files ---------------------------------------------------------------------------------------------
 def test_a_run_that_fails_before_its_first_step_keeps_the_users_files(objects_root, tmp_path, monkeypatch):
@@ -56,7 +59,7 @@ class LastStep(L.Callback):
 
 
 def _cfg(objects_root, tmp_path, run_dir, *extra, callbacks=None):
-    c = compose_train([f"data.root={objects_root}", f"paths.root_dir={tmp_path}", *TRAIN, *SMALL, *extra])
+    c = compose_train([f"data.root={objects_root}", f"paths.root_dir={tmp_path}", *TRAIN, *TINY, *extra])
     c.paths.output_dir = str(run_dir)
     with open_dict(c.callbacks):
         c.callbacks.update(callbacks or {})
@@ -134,7 +137,7 @@ def test_resume_picks_the_newest_checkpoint_by_its_step_not_its_name(tmp_path):
 
 # -- 4. diverged runs ------------------------------------------------------------------------------------------------
 def _module(tmp_path, nonfinite="stop"):
-    cfg = compose_train([*SMALL, f"paths.root_dir={tmp_path}", f"nonfinite={nonfinite}"])
+    cfg = compose_train([*TINY, f"paths.root_dir={tmp_path}", f"nonfinite={nonfinite}"])
     cfg.paths.output_dir = str(tmp_path)
     OmegaConf.resolve(cfg)
     module = build_module(cfg)
