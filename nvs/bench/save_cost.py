@@ -36,7 +36,7 @@ def _median_ms(fn, repeats: int) -> float:
 
 def measure(model: str, size: int, directory: Path, repeats: int) -> dict:
     """Milliseconds per part of one save, the checkpoint's MB, and the guard's ms per step."""
-    cfg = compose("train", [f"model={model}", f"data.size={size}", "paths.output_dir=.", "loss=[recon]"])
+    cfg = compose("train", [f"model={model}", f"data.size={size}", "paths.output_dir=.", "loss=[recon_final]"])
     module = build_module(cfg)
     optimizer = torch.optim.Adam(module.net.parameters(), lr=1e-4)
     batch = synthetic_batch(2, size, "objects", "random", 0)
