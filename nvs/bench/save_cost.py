@@ -73,10 +73,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--repeats", type=int, default=5)
     args = ap.parse_args(argv)
     r = measure(args.model, args.size, Path(args.dir), args.repeats)
-    print(f"{r['model']} {r['size']}x{r['size']}: checkpoint {r['checkpoint_mb']:.1f} MB; one save {r['save_ms']:.0f} ms "
+    print(f"{r['model']} {r['size']}x{r['size']}: checkpoint {r['checkpoint_mb']:.1f} MB; "
+          f"one save {r['save_ms']:.0f} ms "
           f"(hash {r['hash_ms']:.0f}, serialize {r['serialize_ms']:.0f}, write+fsync+rename "
           f"{r['write_fsync_rename_ms']:.0f}); non-finite guard {r['guard_ms_per_step']:.2f} ms per step "
-          f"({torch.get_num_threads()} threads, {torch.device('cpu') if not torch.cuda.is_available() else 'cuda'})")
+          f"({torch.get_num_threads()} CPU threads)")
 
 
 if __name__ == "__main__":
