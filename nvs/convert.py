@@ -128,6 +128,7 @@ def convert(paths: list[str], data: str = "chairs", epoch: str | None = None, ou
             overrides: tuple[str, ...] = ()) -> Path:
     """Write the nvs checkpoint; returns its path (default: beside the inputs, ``<epoch>_nvs.ckpt``)."""
     from nvs.core.atomic import write_bytes
+    from nvs.core.weights_digest import stamp
     from nvs.run.build import build_module
     from nvs.run.compose import compose
 
@@ -146,6 +147,7 @@ def convert(paths: list[str], data: str = "chairs", epoch: str | None = None, ou
     dest = Path(out) if out else files["enc"].parent / f"{epoch}_nvs.ckpt"
     ckpt = {"state_dict": weights, "nvs_config": module.run_config,
             "converted_from": {n: str(files[n]) for n in NETWORKS}, "epoch": 0, "global_step": 0}
+    stamp(ckpt)  # checked on every load, like a checkpoint nvs trained
     buf = io.BytesIO()
     torch.save(ckpt, buf)
     try:
