@@ -317,8 +317,8 @@ def test_killing_a_sweep_with_sigkill_ends_its_training_child(tmp_path):
 
     pidfile = tmp_path / "child.pid"
     child = f"import os, time; open({str(pidfile)!r}, 'w').write(str(os.getpid())); time.sleep(120)"
-    parent = subprocess.Popen([sys.executable, "-c", "import os, sys; from nvs.sweep.launch import _run_streaming; "
-                               f"_run_streaming([sys.executable, '-c', {child!r}], dict(os.environ))"], cwd=REPO)
+    parent = subprocess.Popen([sys.executable, "-c", "import os, sys; from nvs.sweep.launch import run_streaming; "
+                               f"run_streaming([sys.executable, '-c', {child!r}], dict(os.environ))"], cwd=REPO)
     try:
         assert _wait(lambda: pidfile.exists() and pidfile.read_text().strip()), "the child never started"
         pid = int(pidfile.read_text())

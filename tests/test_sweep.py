@@ -395,7 +395,7 @@ def test_last_error_line():
 def test_parallel_launch_never_oversubscribes_the_cores(monkeypatch):
     from nvs.sweep import launch as launching
 
-    monkeypatch.setattr(launching, "_cores", lambda: 8)
+    monkeypatch.setattr(launching, "available_cores", lambda: 8)
     launch = sweep.Launch.local(jobs=4)
     assert launch.threads == 2 and "hydra/launcher=joblib" in launch.hydra_overrides
     assert "hydra.launcher.n_jobs=4" in launch.hydra_overrides
@@ -579,11 +579,11 @@ def test_sigterm_to_the_sweep_stops_its_running_job(tmp_path):
     script.write_text(
         "import signal, sys\n"
         "from nvs import sweep\n"
-        "signal.signal(signal.SIGTERM, sweep._interrupt)\n"
+        "signal.signal(signal.SIGTERM, sweep.interrupt_on_signal)\n"
         f"child = ['{sys.executable}', '-c', 'import os, time; open(r\"{pid_file}\", \"w\").write(str(os.getpid())); "
         "time.sleep(60)']\n"
         "try:\n"
-        "    sweep._run_streaming(child, dict(__import__('os').environ))\n"
+        "    sweep.run_streaming(child, dict(__import__('os').environ))\n"
         "except KeyboardInterrupt:\n"
         "    sys.exit(130)\n")
     # PYTHONPATH: the script lives outside the checkout, so the checkout is not on its path otherwise

@@ -14,41 +14,24 @@ line). Names are also reachable as ``nvs.sweep.<name>``, loaded on first use, so
 from __future__ import annotations
 
 import importlib
+from pathlib import Path
 
-_WHERE = {
-    "study": ("REFERENCE_MODELS", "REFERENCES", "TABLES", "Row", "Study", "StudyFile",
-              "load_study"),
-    "jobs": ("JOB_RECORD", "NEUTRAL_KEYS", "Job", "Status", "row_overrides", "row_seeds", "compose_job",
-             "config_fingerprint", "config_digest", "config_changes", "job_key", "job_status", "plan", "to_launch",
-             "prepare_job_dir"),
-    "recorder": ("FAILED", "STDERR", "JobRecorder"),
-    "launch": ("Launch", "multirun_command", "launch_row", "last_error_line", "_cores", "_run_streaming",
-               "_interrupt"),
-    # (the function collect is nvs.sweep.collect.collect: the attribute nvs.sweep.collect is its module)
-    "collect": ("CSV_COLUMNS", "COSTS", "SKIP_LEVELS", "SKIP_FRACTIONS", "render_csv", "mean_std", "summarize"),
-    "goal_lines": ("GOALS", "against_base", "goals", "test_sets_cell"),
-    "tables": ("PICK_COST", "PICK_L1_TOLERANCE", "pick_cheapest", "render", "render_markdown", "provenance",
-               "write_results"),
-    "paper_order": ("Ordering", "decide", "ordering_lines", "orderings"),
-    "bootstrap": ("Gap", "Paired", "group_of", "pair_up", "paired_gap", "read_seeds", "seed_mean",
-                  "verdict"),
-    "verdict_trace": ("Trace", "sign_test", "flip_set", "trace"),
-    "per_model_plot": ("per_model_png",),
-    "paper_tally": ("tally", "read_orderings"),
-    "__main__": ("run", "main"),
-}
-_MODULE_OF = {name: module for module, names in _WHERE.items() for name in names}
-_SHARED = {"UserError": "nvs.core.errors", "CONF_DIR": "nvs.run.compose", "METRICS": "nvs.core.metric_spec",
-           "IMAGE_METRICS": "nvs.core.metric_spec", "DEPTH_METRICS": "nvs.core.metric_spec"}
+# The modules whose public names are reachable as nvs.sweep.<name>, searched in this order: the recorder first (a
+# training job that names nvs.sweep.JobRecorder loads nothing else), the command line last (it loads everything).
+# A name is public when it does not start with "_".
+MODULES = ("recorder", "study", "jobs", "launch", "collect", "goal_lines", "tables", "paper_order", "bootstrap",
+           "verdict_trace", "per_model_plot", "paper_tally", "__main__")
 
 
 def __getattr__(name: str):
-    if name in _MODULE_OF:
-        return getattr(importlib.import_module(f"{__name__}.{_MODULE_OF[name]}"), name)
-    if name in _SHARED:
-        return getattr(importlib.import_module(_SHARED[name]), name)
+    if (Path(__file__).parent / f"{name}.py").is_file():  # a submodule (``from nvs.sweep import recorder``)
+        return importlib.import_module(f"{__name__}.{name}")
+    if not name.startswith("_"):
+        for module in MODULES:
+            found = getattr(importlib.import_module(f"{__name__}.{module}"), name, _MISSING)
+            if found is not _MISSING:
+                return found
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
-def __dir__() -> list[str]:
-    return sorted([*globals(), *_MODULE_OF, *_SHARED])
+_MISSING = object()

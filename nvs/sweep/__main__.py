@@ -37,7 +37,7 @@ from nvs.run.finished import Run
 from nvs.sweep.cost_check import check_precision
 from nvs.sweep.export import export_jobs, export_root
 from nvs.sweep.jobs import Job, Status, plan, prepare_job_dir, refresh, to_launch
-from nvs.sweep.launch import Launch, _cores, _interrupt, launch_row, multirun_command
+from nvs.sweep.launch import Launch, available_cores, interrupt_on_signal, launch_row, multirun_command
 from nvs.sweep.lock import JobLocks
 from nvs.sweep.study import load_study
 from nvs.sweep.tables import write_results
@@ -153,7 +153,7 @@ def run(argv: list[str] | None = None) -> int:
         return 0
     if launching:
         launch = Launch.local(args.jobs, args.threads, extra)
-        print(f"[sweep] {launch.jobs} job(s) at a time x {launch.threads} thread(s), {_cores()} cores",
+        print(f"[sweep] {launch.jobs} job(s) at a time x {launch.threads} thread(s), {available_cores()} cores",
               file=sys.stderr)
         with JobLocks(root) as locks:
             for row in study.rows:
@@ -195,7 +195,7 @@ def run(argv: list[str] | None = None) -> int:
 
 def main(argv: list[str] | None = None) -> None:
     # `kill <sweep pid>` (SIGTERM) stops the running job too, as Ctrl-C does: no orphan keeps writing its run dir.
-    signal.signal(signal.SIGTERM, _interrupt)
+    signal.signal(signal.SIGTERM, interrupt_on_signal)
     try:
         sys.exit(run(argv))
     except UserError as err:

@@ -31,7 +31,7 @@ from nvs.sweep.study import Row, Study
 REPO = Path(__file__).resolve().parents[2]
 
 
-def _cores() -> int:
+def available_cores() -> int:
     try:
         return len(os.sched_getaffinity(0))
     except AttributeError:
@@ -48,7 +48,7 @@ class Launch:
 
     @classmethod
     def local(cls, jobs: int = 1, threads: int | None = None, extra: tuple[str, ...] = ()) -> Launch:
-        cores = _cores()
+        cores = available_cores()
         if jobs < 1:
             raise UserError(f"--jobs must be >= 1, got {jobs}")
         threads = threads or max(1, cores // jobs)
@@ -81,7 +81,7 @@ def last_error_line(text: str, fallback: bool = True) -> str:
     return lines[-1] if lines and fallback else ""
 
 
-def _interrupt(signum, frame):
+def interrupt_on_signal(signum, frame):
     """SIGTERM handler: raise KeyboardInterrupt, so a running job is stopped as Ctrl-C stops it."""
     raise KeyboardInterrupt(f"signal {signum}")
 
@@ -109,7 +109,7 @@ def _die_with_parent():
 _PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
 
-def _run_streaming(cmd: list[str], env: dict, keep_fds: tuple[int, ...] = ()) -> tuple[int, str]:
+def run_streaming(cmd: list[str], env: dict, keep_fds: tuple[int, ...] = ()) -> tuple[int, str]:
     """Run ``cmd``; its stdout/stderr pass through, the last stderr lines are kept for the error line.
 
     ``keep_fds``: descriptors the child inherits (the jobs' locks, nvs.sweep.lock); it dies with this process.
@@ -152,7 +152,7 @@ def launch_row(study: Study, jobs: list[Job], root: Path, launch: Launch, extra:
     while pending:
         cmd = multirun_command(study, row, [j.seed for j in pending], root, launch, extra)
         print(f"[sweep] {row.name}: seeds {[j.seed for j in pending]}\n[sweep] $ {shlex.join(cmd)}", file=sys.stderr)
-        rc, tail = _run_streaming(cmd, env, keep_fds)
+        rc, tail = run_streaming(cmd, env, keep_fds)
         started = [j for j in pending if (j.dir / STDERR).exists() or (j.dir / "metrics.json").exists()]
         for j in pending:
             refresh(j)
