@@ -6,12 +6,14 @@ forward contract and never touch the training or validation steps.
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Any
 
 import lightning as L
 import torch
 from lightning.pytorch.callbacks import TQDMProgressBar
+from lightning.pytorch.callbacks.progress.tqdm_progress import Tqdm
 from lightning.pytorch.loggers import TensorBoardLogger, WandbLogger
 from PIL import Image
 
@@ -23,8 +25,20 @@ class StepProgressBar(TQDMProgressBar):
     ``max_epochs``) over the whole run, so its ETA is the run's; validation and test bars are Lightning's own.
 
     A resumed run starts the bar at the step it resumes from; the ETA is measured on the steps of this process
-    (averaged over them, validation time included).
+    (averaged over them, validation time included). The bar shows the logged values without the logger's version;
+    when stdout is not a terminal (a log file) the validation bars of a fit are off: below the training bar they
+    would write cursor-up escapes into the file.
     """
+
+    def get_metrics(self, trainer: L.Trainer, pl_module: L.LightningModule) -> dict:
+        items = super().get_metrics(trainer, pl_module)
+        items.pop("v_num", None)
+        return items
+
+    def init_validation_tqdm(self) -> Tqdm:
+        if self.trainer.state.fn == "validate" or sys.stdout.isatty():
+            return super().init_validation_tqdm()
+        return Tqdm(disable=True)
 
     @property
     def train_description(self) -> str:
@@ -61,8 +75,9 @@ class ValidationImages(L.Callback):
     """At each validation, the module's prediction on a fixed validation batch as one image, logged as ``val/grid``.
 
     Rows are samples; columns are source, target, prediction and predicted depth (grey, near = bright; the column is
-    left out for networks without depth). The batch is the first ``samples`` pairs of the first validation batch
-    (the validation split is not shuffled, so it is the same pairs all run long). Each logger gets the grid its own
+    left out for networks without depth). The batch is ``samples`` pairs spread evenly over the validation split
+    (its pairs are listed model by model, so these are distinct models where the split has enough; the split is not
+    shuffled, so they are the same pairs all run long). Each logger gets the grid its own
     way: TensorBoard ``add_image``, W&B ``log_image``, any other logger with a ``log_dir`` (CSV) a PNG under
     ``<log_dir>/images/``.
 
@@ -81,9 +96,19 @@ class ValidationImages(L.Callback):
         self.batch: dict | None = None
         self.columns = self.COLUMNS
 
+    def on_validation_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if self.batch is not None:
+            return
+        loaders = trainer.val_dataloaders
+        loader = loaders[0] if isinstance(loaders, (list, tuple)) else loaders
+        dataset = getattr(loader, "dataset", None)
+        if dataset is not None and hasattr(dataset, "__len__") and len(dataset) > 0:
+            items = [dataset[i] for i in spread(len(dataset), self.samples)]
+            self.batch = loader.collate_fn(items)
+
     def on_validation_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, batch_idx: int,
                                   dataloader_idx: int = 0) -> None:
-        if self.batch is None and batch_idx == 0 and dataloader_idx == 0:
+        if self.batch is None and batch_idx == 0 and dataloader_idx == 0:  # a split without random access
             n = self.samples
             self.batch = {k: (v[:n].detach().cpu().clone() if torch.is_tensor(v) else list(v[:n]))
                           for k, v in batch.items()}
@@ -116,3 +141,9 @@ class ValidationImages(L.Callback):
             out = Path(logger.log_dir) / "images" / f"val_grid_step{step:07d}.png"
             out.parent.mkdir(parents=True, exist_ok=True)
             Image.fromarray(to_uint8_hwc(grid)).save(out)
+
+
+def spread(n: int, k: int) -> list[int]:
+    """``min(k, n)`` distinct indices in ``range(n)`` spread evenly, the first one 0."""
+    k = min(k, n)
+    return [i * n // k for i in range(k)]

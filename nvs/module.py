@@ -153,6 +153,12 @@ class NVSModule(L.LightningModule):
         for name in self.val_metrics:
             mean = sum(r[name] for r in rows) / len(rows) if rows else float("nan")
             self.log(f"val/{name}", torch.tensor(mean, device=self.device), sync_dist=True)
+        self._log_at_global_step()
+
+    def _log_at_global_step(self) -> None:
+        # Lightning logs validation at the step before the optimiser step it follows (19 for the checkpoint and grid
+        # of step 20); a logged "step" is the x-axis every logger uses instead.
+        self.log("step", float(self.global_step), sync_dist=True)  # the same on every rank: no warning under DDP
 
     @staticmethod
     def _indices(batch: Batch, start: int) -> list[int]:
@@ -182,6 +188,11 @@ class NVSModule(L.LightningModule):
         self._test_rows_seen = gather_sum(float(len(self.test_rows)))
         self.test_forward_s = gather_sum(self.test_forward_s)
         self.test_rows = gather_rows(self.test_rows)
+        # The means over all pairs, identical on every rank after the gather: logged as test/<metric>.
+        for key, value in self.test_summary().items():
+            if key != "n_pairs" and not math.isnan(value):
+                self.log(f"test/{key}", float(value), sync_dist=True)
+        self._log_at_global_step()
 
     def on_test_epoch_start(self):
         self.test_rows = []

@@ -25,6 +25,7 @@ from nvs.build import build_data, build_module, choose_precision, parameter_coun
 from nvs.checkpoints import AtomicCheckpointIO
 from nvs.errors import Interrupted, UserError, user_message
 from nvs.fit_callbacks import Interruption, Throughput
+from nvs.loggers import log_run_config
 from nvs.precision import Choice
 from nvs.provenance import device_name, git_sha
 from nvs.quiet import silence_known_noise
@@ -53,6 +54,14 @@ def _trainer(cfg: DictConfig, **kwargs) -> L.Trainer:
         cause = err.__cause__ or err
         message = user_message(cause) or f"{cause.__class__.__name__}: {cause}"
         raise UserError(f"config 'trainer': {message}") from None
+
+
+def _log_interval(cfg: DictConfig) -> dict:
+    """``log_every_n_steps`` capped at ``max_steps``: a run shorter than the interval still logs its loss."""
+    every, steps = cfg.trainer.get("log_every_n_steps"), cfg.trainer.get("max_steps")
+    if isinstance(every, int) and isinstance(steps, int) and 0 < steps < every:
+        return {"log_every_n_steps": steps}
+    return {}
 
 
 def _resume_path(cfg: DictConfig, out_dir: Path) -> str | None:
@@ -129,8 +138,12 @@ def _run(cfg: DictConfig, out_dir: Path, throughput: Throughput) -> dict:
                 check_writable(lg.log_dir)
     ckpt_dir = Path(checkpoint_cbs[0].dirpath) if checkpoint_cbs and checkpoint_cbs[0].dirpath else out_dir
     interruption = Interruption(ckpt_dir / "last.ckpt", resume_command(out_dir))
-    trainer = _trainer(cfg, callbacks=callbacks + [throughput, interruption], logger=loggers or False,
-                       plugins=[AtomicCheckpointIO()], precision=choice.precision)
+    carried = [throughput, interruption]
+    if loggers:  # the learning rate of each parameter group at every logged step (it needs a logger)
+        carried.append(L.pytorch.callbacks.LearningRateMonitor(logging_interval="step"))
+    trainer = _trainer(cfg, callbacks=callbacks + carried, logger=loggers or False,
+                       plugins=[AtomicCheckpointIO()], precision=choice.precision, **_log_interval(cfg))
+    log_run_config(loggers, cfg)
     interruption.install()
     try:
         return _fit_and_test(cfg, out_dir, trainer, module, datamodule, callbacks, throughput, choice, testing)
