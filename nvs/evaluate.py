@@ -17,6 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from nvs.build import build_data, parameter_count
 from nvs.checkpoints import restore_module, restore_run_config
+from nvs.compose import CONF_DIR
 from nvs.config_check import check_cli_overrides
 from nvs.errors import UserError, exits_cleanly, user_message
 from nvs.precision import Choice, choose
@@ -82,7 +83,7 @@ def evaluation_precision(cfg: DictConfig, run: DictConfig) -> Choice:
         raise UserError(f"precision={cfg.precision}: {err}") from None
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="evaluate")
 @exits_cleanly
 def main(cfg: DictConfig) -> None:
     run_dir = Path(HydraConfig.get().runtime.output_dir)

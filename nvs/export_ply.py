@@ -9,6 +9,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
+from nvs.compose import CONF_DIR
 from nvs.config_check import check_cli_overrides
 from nvs.errors import UserError, exits_cleanly
 from nvs.pointcloud import write_ply
@@ -33,7 +34,7 @@ def export(cfg: DictConfig) -> Path:
     return write_ply(out, xyz, rgb, comments)
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="export_ply")
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="export_ply")
 @exits_cleanly
 def main(cfg: DictConfig) -> None:
     check_cli_overrides("export_ply", HydraConfig.get().overrides.task)

@@ -9,6 +9,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
+from nvs.compose import CONF_DIR
 from nvs.config_check import check_cli_overrides
 from nvs.errors import UserError, exits_cleanly
 from nvs.quiet import silence_known_noise
@@ -33,7 +34,7 @@ def render(cfg: DictConfig) -> list[Path]:
     return write_video(Path(cfg.out_dir) / name, frames, float(cfg.fps), list(cfg.formats), int(cfg.gif_colors))
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="render_video")
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="render_video")
 @exits_cleanly
 def main(cfg: DictConfig) -> None:
     check_cli_overrides("render_video", HydraConfig.get().overrides.task)

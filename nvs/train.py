@@ -10,6 +10,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
+from nvs.compose import CONF_DIR
 from nvs.config_check import check_cli_overrides, trainer_arguments
 from nvs.errors import UserError, exits_cleanly
 from nvs.run_files import check_creatable, is_global_zero, remove_unstarted_run, run_dir_of, summary_line
@@ -53,7 +54,7 @@ def check_composes(argv: list[str]) -> None:
         raise UserError(" ".join(lines[:8])) from None
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="train")
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="train")
 @exits_cleanly
 def main(cfg: DictConfig) -> None:
     out_dir = Path(HydraConfig.get().runtime.output_dir)

@@ -24,6 +24,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from nvs.atomic import write_json
+from nvs.compose import CONF_DIR
 from nvs.errors import UserError, exits_cleanly
 from nvs.provenance import header
 from nvs.viewer.process import ViewerProcess
@@ -84,7 +85,7 @@ def measure(url: str, requests: int, warmup: int) -> dict:
     }
 
 
-@hydra.main(version_base="1.3", config_path="../../conf", config_name="viewer")
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="viewer")
 @exits_cleanly
 def main(cfg: DictConfig) -> None:
     overrides = [o for o in HydraConfig.get().overrides.task if not o.startswith(("load.", "port="))]
