@@ -38,6 +38,7 @@ from nvs.sweep.cost_check import check_precision
 from nvs.sweep.export import export_jobs, export_root
 from nvs.sweep.jobs import Job, Status, plan, prepare_job_dir, to_launch
 from nvs.sweep.launch import Launch, _cores, _interrupt, launch_row, multirun_command
+from nvs.sweep.progress import Progress
 from nvs.sweep.study import load_study
 from nvs.sweep.tables import write_results
 from nvs.sweep.testset import check_launch
@@ -138,13 +139,17 @@ def run(argv: list[str] | None = None) -> int:
         launch = Launch.local(args.jobs, args.threads, extra)
         print(f"[sweep] {launch.jobs} job(s) at a time x {launch.threads} thread(s), {_cores()} cores",
               file=sys.stderr)
+        order = [j for row in study.rows for j in launching if j.row is row]  # the order they run in
+        progress = Progress(order, skipped=len(jobs) - len(order))
+        progress.begin()
         for row in study.rows:
-            row_jobs = [j for j in launching if j.row is row]
+            row_jobs = [j for j in order if j.row is row]
             if not row_jobs:
                 continue
             for j in row_jobs:
                 prepare_job_dir(j, root, force=args.force)
-            launch_row(study, row_jobs, root, launch, extra)
+            launch_row(study, row_jobs, root, launch, extra, progress)
+        progress.end()
         jobs = plan(study, root, extra, exported)
     if args.export_jobs:
         dest = export_root(args.results, study.scale)
