@@ -60,17 +60,24 @@ class ReconLoss(LossTerm):
             raise ValueError("scale_weights must list at least the final scale")
         self.side_upsample = check_choice(side_upsample, UPSAMPLES, "side_upsample")
 
+    key = "loss.recon"  # its config key, set by the build check
+
+    def _too_many(self, n_scales: int) -> UserError:
+        return UserError(f"{self.key}.scale_weights has {len(self.scale_weights)} weights but the model predicts "
+                         f"{n_scales} scale(s); use loss=[recon_final,...] or {self.key}.scale_weights=[1.0]")
+
     def check_network(self, net: nn.Module, key: str) -> None:
+        self.key = key
         n_scales = getattr(net, "n_scales", None)
         if n_scales is not None and len(self.scale_weights) > n_scales:
-            raise UserError(f"{key}.scale_weights has {len(self.scale_weights)} weights but the model predicts "
-                            f"{n_scales} scale(s); use loss=[recon_final,...] or {key}.scale_weights=[1.0]")
+            raise self._too_many(n_scales)
 
     def forward(self, out: Outputs, batch: Batch) -> torch.Tensor:
         tgt = to_model_range(batch["tgt"])
+        if len(out["rgb_scales"]) < len(self.scale_weights):  # a network without ``n_scales``: found at step 1
+            raise self._too_many(len(out["rgb_scales"]))
         preds = out["rgb_scales"][::-1][:len(self.scale_weights)]  # finest first
         total = tgt.new_zeros(())
-        # strict: a network without ``n_scales`` that predicts too few scales still fails (less clearly)
         for w, p in zip(self.scale_weights, preds, strict=True):
             p = upsample_side(p, tuple(tgt.shape[-2:]), self.side_upsample)
             total = total + w * (up(p) - tgt).abs().mean()

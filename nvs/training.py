@@ -56,12 +56,15 @@ def _trainer(cfg: DictConfig, **kwargs) -> L.Trainer:
         raise UserError(f"config 'trainer': {message}") from None
 
 
-def _log_interval(cfg: DictConfig) -> dict:
-    """``log_every_n_steps`` capped at ``max_steps``: a run shorter than the interval still logs its loss."""
-    every, steps = cfg.trainer.get("log_every_n_steps"), cfg.trainer.get("max_steps")
-    if isinstance(every, int) and isinstance(steps, int) and 0 < steps < every:
-        return {"log_every_n_steps": steps}
-    return {}
+def _short_run(cfg: DictConfig) -> dict:
+    """``log_every_n_steps`` and a step-count ``val_check_interval`` capped at ``max_steps``: a run shorter than
+    either still logs its loss, and validates (and so tests a validation-selected checkpoint) at its last step."""
+    steps, capped = cfg.trainer.get("max_steps"), {}
+    for key in ("log_every_n_steps", "val_check_interval"):
+        every = cfg.trainer.get(key)
+        if isinstance(every, int) and not isinstance(every, bool) and isinstance(steps, int) and 0 < steps < every:
+            capped[key] = steps
+    return capped
 
 
 def _resume_path(cfg: DictConfig, out_dir: Path) -> str | None:
@@ -142,7 +145,7 @@ def _run(cfg: DictConfig, out_dir: Path, throughput: Throughput) -> dict:
     if loggers:  # the learning rate of each parameter group at every logged step (it needs a logger)
         carried.append(L.pytorch.callbacks.LearningRateMonitor(logging_interval="step"))
     trainer = _trainer(cfg, callbacks=callbacks + carried, logger=loggers or False,
-                       plugins=[AtomicCheckpointIO()], precision=choice.precision, **_log_interval(cfg))
+                       plugins=[AtomicCheckpointIO()], precision=choice.precision, **_short_run(cfg))
     log_run_config(loggers, cfg)
     interruption.install()
     try:
@@ -184,6 +187,9 @@ def _fit_and_test(cfg: DictConfig, out_dir: Path, trainer: L.Trainer, module, da
         result["eval_ms_per_image"] = 1000 * (time.perf_counter() - t0) / n  # whole test loop, metrics included
         result["eval_forward_ms_per_image"] = module.test_forward_ms_per_image()
         result["checkpoint"] = ckpt
+        # which weights the test metrics are of: no validation ran (limit_val_batches=0, ...) means the final ones
+        result["tested_weights"] = ("best validation checkpoint" if ckpt
+                                    else f"final weights (step {trainer.global_step})")
         result["test"] = module.test_summary()
         if trainer.is_global_zero:  # the rows are gathered from every rank: one writer
             write_per_image(out_dir / "test_per_image.csv", module.test_rows)

@@ -167,10 +167,13 @@ def test_the_validation_grid_takes_pairs_spread_over_the_split_one_per_model():
 
 def test_log_interval_is_capped_at_a_shorter_run_and_wandb_is_quiet(tmp_path):
     from nvs.loggers import QuietWandbLogger
-    from nvs.training import _log_interval
+    from nvs.training import _short_run
 
     cfg = compose_train([f"paths.output_dir={tmp_path}", "trainer.max_steps=10"])
-    assert cfg.trainer.log_every_n_steps == 25 and _log_interval(cfg) == {"log_every_n_steps": 10}
-    assert _log_interval(compose_train([f"paths.output_dir={tmp_path}", "trainer.max_steps=100"])) == {}
+    assert cfg.trainer.log_every_n_steps == 25 and cfg.trainer.val_check_interval == 500
+    assert _short_run(cfg) == {"log_every_n_steps": 10, "val_check_interval": 10}
+    assert _short_run(compose_train([f"paths.output_dir={tmp_path}", "trainer.max_steps=100"])) == {
+        "val_check_interval": 100}
+    assert _short_run(compose_train([f"paths.output_dir={tmp_path}", "trainer.max_steps=1000"])) == {}
     logger = QuietWandbLogger(save_dir=str(tmp_path), offline=True)
     assert "anonymous" not in logger._wandb_init and logger._wandb_init["settings"].silent is True
