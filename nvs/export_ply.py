@@ -29,7 +29,7 @@ def export(cfg: DictConfig) -> Path:
     if unknown:
         raise UserError(f"pose: unknown control(s) {', '.join(unknown)}; this model's are {', '.join(names)}")
     values = {**session.controls.initial(source.meta), **{k: float(v) for k, v in pose.items()}}
-    xyz, rgb, comments = view_points(session, source.key, values, cfg.max_depth)
+    xyz, rgb, comments = view_points(session, source.key, values, cfg.max_depth, bool(cfg.keep_background))
     out = Path(cfg.out) if cfg.out else Path(HydraConfig.get().runtime.output_dir) / f"{file_stem(source.label)}.ply"
     return write_ply(out, xyz, rgb, comments)
 
