@@ -74,11 +74,13 @@ class ReconLoss(LossTerm):
 
     def forward(self, out: Outputs, batch: Batch) -> torch.Tensor:
         tgt = to_model_range(batch["tgt"])
-        if len(out["rgb_scales"]) < len(self.scale_weights):  # a network without ``n_scales``: found at step 1
-            raise self._too_many(len(out["rgb_scales"]))
         preds = out["rgb_scales"][::-1][:len(self.scale_weights)]  # finest first
+        try:
+            pairs = list(zip(self.scale_weights, preds, strict=True))
+        except ValueError:  # too few predictions from a network without ``n_scales`` (unchecked at build time)
+            raise self._too_many(len(preds)) from None
         total = tgt.new_zeros(())
-        for w, p in zip(self.scale_weights, preds, strict=True):
+        for w, p in pairs:
             p = upsample_side(p, tuple(tgt.shape[-2:]), self.side_upsample)
             total = total + w * (up(p) - tgt).abs().mean()
         return total
