@@ -142,6 +142,7 @@ def test_a_run_logs_to_tensorboard_wandb_offline_and_csv_with_the_image_grid(obj
 
     # the bar counts steps toward max_steps with an ETA; the listed noise is gone, other output stays
     assert "train steps" in res.stdout and "4/4" in res.stdout and re.search(r"[1-3]/4 \[\d\d:\d\d<", res.stdout)
+    assert "\r" not in res.stdout  # a log file: one line per event, no carriage-return updates
     noise = ("litlogger", "litmodels", "LeafSpec", "module(s) in eval mode", "wandb:", "anonymous", "v_num",
              "\x1b", "Validation")
     assert not [n for n in noise if n in res.stdout + res.stderr]
