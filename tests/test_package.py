@@ -11,8 +11,6 @@ import tomllib
 import zipfile
 from pathlib import Path
 
-import pytest
-
 REPO = Path(__file__).resolve().parents[1]
 SCRIPTS = ("nvs-train", "nvs-evaluate", "nvs-sweep", "nvs-viewer", "nvs-demo", "nvs-convert", "nvs-render-video",
            "nvs-export-ply", "nvs-figures", "nvs-pareto")
@@ -44,7 +42,6 @@ def _wheel(tmp_path: Path) -> Path:
     return wheel
 
 
-@pytest.mark.slow  # ~90 s: a wheel, a virtual environment and a 2-step run
 def test_the_installed_wheel_trains_from_its_own_configs(objects_root, tmp_path):
     wheel = _wheel(tmp_path)
     names = zipfile.ZipFile(wheel).namelist()
