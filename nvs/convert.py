@@ -17,7 +17,9 @@ from pathlib import Path
 
 import torch
 
-from nvs.errors import UserError, exits_cleanly
+from nvs.core.errors import UserError
+
+from nvs.run.cli import exits_cleanly
 
 NETWORKS = ("enc", "dec", "depthdec")
 PREFIX = {"enc": "net.encoder.", "dec": "net.pixel_decoder.", "depthdec": "net.depth.decoder."}
@@ -118,9 +120,9 @@ def convert_state(files: dict[str, Path], target: dict[str, torch.Tensor]) -> di
 def convert(paths: list[str], data: str = "chairs", epoch: str | None = None, out: str | None = None,
             overrides: tuple[str, ...] = ()) -> Path:
     """Write the nvs checkpoint; returns its path (default: beside the inputs, ``<epoch>_nvs.ckpt``)."""
-    from nvs.atomic import write_bytes
-    from nvs.build import build_module
-    from nvs.compose import compose
+    from nvs.core.atomic import write_bytes
+    from nvs.run.build import build_module
+    from nvs.run.compose import compose
 
     files = find_files(paths, epoch)
     epoch = files["enc"].name.split("_net_")[0]

@@ -9,7 +9,7 @@ import sys
 import time
 from pathlib import Path
 
-from nvs.metric_spec import IMAGE_METRICS, SPECS
+from nvs.core.metric_spec import IMAGE_METRICS, SPECS
 
 
 
@@ -38,8 +38,8 @@ def planned_steps(experiment: str, size: int, minutes: float | None = None) -> t
 
     from nvs.bench.contenders import make_batches, nvs_contender
     from nvs.bench.measure import interleaved
-    from nvs.compose import compose
-    from nvs.precision import choose
+    from nvs.run.compose import compose
+    from nvs.run.precision import choose
 
     cfg = compose("train", [f"experiment={experiment}"])
     max_steps, batch = int(cfg.trainer.max_steps), int(cfg.data.loader.batch_size)

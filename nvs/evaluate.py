@@ -1,7 +1,7 @@
 """python -m nvs.evaluate ckpt_path=... [data=...]: test metrics (metrics.json) and per-image CSV of a checkpoint.
 
 Reference models that need no training are evaluated without a checkpoint: ``model=copy_source``, ``gt_warp``,
-``mean_depth`` or ``gt_plane`` (nvs.runs.REFERENCE_MODELS).
+``mean_depth`` or ``gt_plane`` (nvs.models.reference.REFERENCE_MODELS).
 """
 
 from __future__ import annotations
@@ -15,16 +15,17 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from nvs.build import build_data, parameter_count
-from nvs.checkpoints import restore_module, restore_run_config
-from nvs.compose import CONF_DIR
-from nvs.config_check import check_cli_overrides
-from nvs.errors import UserError, exits_cleanly, user_message
-from nvs.precision import Choice, choose
-from nvs.provenance import device_name, git_sha
-from nvs.quiet import silence_known_noise
-from nvs.run_files import (check_creatable, check_writable, is_global_zero, remove_unstarted_run, run_dir_of,
+from nvs.core.errors import UserError, user_message
+from nvs.core.provenance import device_name, git_sha
+from nvs.run.build import build_data, parameter_count
+from nvs.run.checkpoints import restore_module, restore_run_config
+from nvs.run.cli import exits_cleanly
+from nvs.run.config_check import check_cli_overrides
+from nvs.run.precision import Choice, choose
+from nvs.run.quiet import silence_known_noise
+from nvs.run.artifacts import (check_creatable, check_writable, is_global_zero, remove_unstarted_run, run_dir_of,
                            summary_line, write_metrics, write_per_image)
+from nvs.run.compose import CONF_DIR
 
 
 def evaluate(cfg: DictConfig, out_dir: Path) -> dict:

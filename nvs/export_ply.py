@@ -1,5 +1,5 @@
 """python -m nvs.export_ply ckpt_path=... [source=...] ['pose={azimuth:20,elevation:10}']: the predicted depth of a
-synthesised view as a coloured point cloud (binary PLY; conf/export_ply.yaml, conventions in nvs/pointcloud.py)."""
+synthesised view as a coloured point cloud (binary PLY; conf/export_ply.yaml, conventions in nvs/report/pointcloud.py)."""
 
 from __future__ import annotations
 
@@ -9,11 +9,12 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from nvs.compose import CONF_DIR
-from nvs.config_check import check_cli_overrides
-from nvs.errors import UserError, exits_cleanly
-from nvs.pointcloud import write_ply
-from nvs.quiet import silence_known_noise
+from nvs.core.errors import UserError
+from nvs.report.pointcloud import write_ply
+from nvs.run.cli import exits_cleanly
+from nvs.run.compose import CONF_DIR
+from nvs.run.config_check import check_cli_overrides
+from nvs.run.quiet import silence_known_noise
 from nvs.viewer.build import build_session, pick_source, source_ids
 from nvs.viewer.cloud import file_stem, view_points
 

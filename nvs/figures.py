@@ -7,7 +7,7 @@ Writes into ``--out`` (default ``results/``), prefixed with the study name (or `
                                      method, seen from two angles (Fig. 6)
   ``<name>_curves.png``              training loss and validation L1 of each run from its ``csv/metrics.csv``
 Models are rebuilt from each run's best checkpoint the way ``nvs.evaluate`` does; reference runs from their overrides.
-The drawing lives in ``nvs.paper_figures``; this module reads the command line.
+The drawing lives in ``nvs.report.figures``; this module reads the command line.
 """
 
 from __future__ import annotations
@@ -16,9 +16,9 @@ import argparse
 import sys
 from pathlib import Path
 
-from nvs.errors import UserError
-from nvs.paper_figures import make_figures
-from nvs.runs import Run, run_from_dir
+from nvs.core.errors import UserError
+from nvs.report.figures import make_figures
+from nvs.run.finished import Run, run_from_dir
 from nvs.sweep.jobs import Status, plan
 from nvs.sweep.study import load_study
 

@@ -10,17 +10,17 @@ By default the paper's studies (ablation, comparison_*) in ``--results`` are rea
 from __future__ import annotations
 
 import argparse
-import io
 import re
 import sys
 from pathlib import Path
 
 import pandas as pd
 
-from nvs.atomic import write_bytes, write_text
-from nvs.errors import UserError
-from nvs.metric_spec import SPECS
-from nvs.provenance import git_sha, utc_now
+from nvs.core.atomic import write_bytes, write_text
+from nvs.core.errors import UserError
+from nvs.core.metric_spec import SPECS
+from nvs.core.provenance import git_sha, utc_now
+from nvs.report.png import figure_png
 
 # (column, label, True when larger is better), from the one metric specification
 ERRORS = tuple((m, SPECS[m].label, SPECS[m].higher_is_better) for m in ("l1", "ssim_paper"))
@@ -151,10 +151,7 @@ def plot(agg: pd.DataFrame) -> bytes:
     axes[0][0].legend(title="data (★ Pareto front)")
     fig.suptitle("Run time against error per trained row")
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110)
-    plt.close(fig)
-    return buf.getvalue()
+    return figure_png(fig, dpi=110)
 
 
 def default_csvs(results: Path) -> list[Path]:

@@ -11,11 +11,12 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
-from nvs.compose import CONF_DIR
-from nvs.config_check import check_cli_overrides
-from nvs.errors import UserError, exits_cleanly
-from nvs.quiet import silence_known_noise
-from nvs.run_files import is_global_zero, remove_unstarted_run
+from nvs.core.errors import UserError
+from nvs.run.artifacts import is_global_zero, remove_unstarted_run
+from nvs.run.cli import exits_cleanly
+from nvs.run.compose import CONF_DIR
+from nvs.run.config_check import check_cli_overrides
+from nvs.run.quiet import silence_known_noise
 from nvs.viewer.build import build_session, pick_source, source_ids
 from nvs.viewer.cloud import file_stem
 from nvs.viewer.controls import check_values

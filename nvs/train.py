@@ -10,15 +10,16 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from nvs.compose import CONF_DIR
-from nvs.config_check import check_cli_overrides, trainer_arguments
-from nvs.errors import UserError, exits_cleanly
-from nvs.run_files import check_creatable, is_global_zero, remove_unstarted_run, run_dir_of, summary_line
-from nvs.training import job_name, run
+from nvs.core.errors import UserError
+from nvs.run.artifacts import check_creatable, is_global_zero, remove_unstarted_run, run_dir_of, summary_line
+from nvs.run.cli import exits_cleanly
+from nvs.run.compose import CONF_DIR
+from nvs.run.config_check import check_cli_overrides, trainer_arguments
+from nvs.run.training import job_name, run
 
 
 def main_cli() -> None:
-    """``python -m nvs.train``: every Lightning Trainer argument is ``trainer.<arg>=...`` (nvs.config_check)."""
+    """``python -m nvs.train``: every Lightning Trainer argument is ``trainer.<arg>=...`` (nvs.run.config_check)."""
     import sys
 
     try:
@@ -40,7 +41,7 @@ def check_composes(argv: list[str]) -> None:
         return
     from hydra.errors import HydraException
 
-    from nvs.compose import compose_raw
+    from nvs.run.compose import compose_raw
 
     try:
         compose_raw("train", argv)

@@ -8,9 +8,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from nvs.compose import CONF_DIR as _CONF_DIR
-from nvs.compose import compose
-from nvs.synthetic import synthetic_batch, write_objects_root, write_scenes_root
+from nvs.data.synthetic import synthetic_batch, write_objects_root, write_scenes_root
+from nvs.run.compose import CONF_DIR as _CONF_DIR
+from nvs.run.compose import compose
 
 CONF_DIR = str(_CONF_DIR)
 # The fixture writers and the batch builder live in the package (nvs.stress uses them too); the test-facing names stay.

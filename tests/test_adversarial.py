@@ -7,9 +7,9 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from nvs.build import build_module
-from nvs.losses_adversarial import AdversarialLoss, PatchDiscriminator
-from nvs.types import RGB_BRANCHES
+from nvs.core.types import RGB_BRANCHES
+from nvs.losses.adversarial import AdversarialLoss, PatchDiscriminator
+from nvs.run.build import build_module
 from tests.conftest import compose_train, fixture_batch
 
 
@@ -99,7 +99,7 @@ def test_the_hook_moves_the_critic_and_a_checkpoint_restores_it(tmp_path):
 
 
 def test_frozen_loss_networks_are_still_left_out_of_checkpoints(tmp_path):
-    module = _module(tmp_path, "loss=[recon,branches,adversarial,vgg]", "loss.vgg.layers=[relu1_2]")
+    module = _module(tmp_path, "loss=[recon_final,branches,adversarial,vgg]", "loss.vgg.layers=[relu1_2]")
     ckpt = {"state_dict": module.state_dict()}
     module.on_save_checkpoint(ckpt)
     assert not any(k.startswith("losses.vgg.") for k in ckpt["state_dict"])
@@ -107,7 +107,7 @@ def test_frozen_loss_networks_are_still_left_out_of_checkpoints(tmp_path):
 
 
 def test_turning_it_off_removes_it(tmp_path):
-    module = _module(tmp_path, "loss=[recon,branches]")
+    module = _module(tmp_path, "loss=[recon_final,branches]")
     assert "adversarial" not in module.losses
     assert not any(k.startswith("losses.") for k in module.state_dict())
     logged = {}

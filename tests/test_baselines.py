@@ -12,14 +12,14 @@ import torch
 import torch.nn.functional as F
 from omegaconf import OmegaConf
 
-from nvs.build import build_module
-from nvs.errors import UserError
-from nvs.geometry import inverse_warp, pose_matrix
-from nvs.models.baselines import halvings, pose_code
+from nvs.core.errors import UserError
+from nvs.core.geometry import inverse_warp, pose_matrix
+from nvs.core.types import RGB_BRANCHES, Extras
 from nvs.models.baselines.chen import warp_border
+from nvs.models.baselines.common import halvings, pose_code
 from nvs.models.baselines.sun import Sun
 from nvs.models.baselines.tatarchenko import Tatarchenko
-from nvs.types import RGB_BRANCHES, Extras
+from nvs.run.build import build_module
 from tests.conftest import compose_train, fixture_batch
 
 REPO = Path(__file__).resolve().parents[1]
@@ -336,8 +336,8 @@ def test_ground_truth_warp_treats_missing_depth_as_the_data_says():
                                             ("kitti", 100.0)])
 def test_ground_truth_warp_reads_the_sky_from_the_data_config_not_its_name(data, sky_depth, tmp_path):
     """The model is told no dataset kind: scenes' sky sits at their disparity head's far limit, objects have none."""
-    from nvs.compose import compose
     from nvs.models.reference import GroundTruthWarp
+    from nvs.run.compose import compose
 
     cfg = compose("evaluate", ["model=gt_warp", f"data={data}", f"paths.root_dir={tmp_path}"])
     cfg.paths.output_dir = str(tmp_path)

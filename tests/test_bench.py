@@ -11,8 +11,8 @@ import torch
 
 import reference_code as rc
 import nvs.bench.measure as measure
-from nvs.compose import compose
-from nvs.errors import UserError
+from nvs.core.errors import UserError
+from nvs.run.compose import compose
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -145,7 +145,7 @@ def test_reference_novel_view_is_their_forward_and_their_step_trains():
     ref.train_step(Reference.inputs(batches.train))
     assert not torch.equal(before, ref.model.dec.finalpred.weight)
     from nvs.bench.contenders import train_config
-    from nvs.build import build_module, parameter_count
+    from nvs.run.build import build_module, parameter_count
 
     # their three networks are nvs's full model at 256², parameter for parameter
     assert ref.parameter_count() == parameter_count(build_module(train_config([], 256, str(REPO), False)).net)

@@ -1,4 +1,4 @@
-"""nvs.checkpoints' restore: the one way evaluate, the viewer and the figures rebuild a run from its checkpoint."""
+"""nvs.run.checkpoints' restore: the one way evaluate, the viewer and the figures rebuild a run from its checkpoint."""
 
 from __future__ import annotations
 
@@ -6,10 +6,10 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from nvs.build import build_module
-from nvs.checkpoints import restore_module, restore_run_config
-from nvs.compose import compose
-from nvs.errors import UserError
+from nvs.core.errors import UserError
+from nvs.run.build import build_module
+from nvs.run.checkpoints import restore_module, restore_run_config
+from nvs.run.compose import compose
 from tests.conftest import compose_train, fixture_batch
 
 

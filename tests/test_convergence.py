@@ -1,4 +1,4 @@
-"""The stopping rule (nvs.convergence): the rule by hand, the callback inside a real Lightning fit, the config."""
+"""The stopping rule (nvs.run.convergence): the rule by hand, the callback inside a real Lightning fit, the config."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import lightning as L
 import pytest
 import torch
 
-from nvs.convergence import RECORD, Convergence, converged, read_record
-from nvs.errors import UserError
+from nvs.core.errors import UserError
+from nvs.run.convergence import RECORD, Convergence, converged, read_record
 from tests.conftest import compose_train
 
 REPO = Path(__file__).resolve().parents[1]
@@ -115,7 +115,7 @@ def test_history_survives_a_resume(tmp_path):
 def test_the_config_option_adds_the_callback_to_the_defaults():
     cfg = compose_train(["experiment=nvs_chairs", "callbacks=convergence"])
     assert list(cfg.callbacks) == ["model_checkpoint", "progress_bar", "validation_images", "convergence"]
-    assert cfg.callbacks.convergence._target_ == "nvs.convergence.Convergence"
+    assert cfg.callbacks.convergence._target_ == "nvs.run.convergence.Convergence"
     assert (cfg.callbacks.convergence.window, cfg.callbacks.convergence.min_improvement) == (0.25, 0.01)
     assert "convergence" not in compose_train(["experiment=nvs_chairs"]).callbacks  # off by default
 

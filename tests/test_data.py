@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 import torch
 
+from nvs.core.errors import DataError
 from nvs.data.datamodule import Camera, LoaderSettings, NVSDataModule
 from nvs.data.kitti import ScenesFormat
 from nvs.data.shapenet import ObjectsFormat, parse_stem
-from nvs.errors import DataError
 from tests.conftest import make_objects_root, make_scenes_root
 
 CAM_OBJ = Camera(fx=480, fy=480, cx=128, cy=128, size=256, pivot=(0.0, 0.0, 2.0))
@@ -126,8 +126,8 @@ def test_resize_and_depth_downsampling(objects_root):
 
 def test_mirrored_pair_warps_to_the_mirrored_warp():
     """Warping a mirrored pair equals mirroring the warped pair: K, pose and pivot are mirrored consistently."""
+    from nvs.core.geometry import inverse_warp
     from nvs.data.datamodule import mirror_pair
-    from nvs.geometry import inverse_warp
 
     g = torch.Generator().manual_seed(0)
     H = W = 32

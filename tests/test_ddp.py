@@ -32,7 +32,7 @@ def odd_root(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def checkpoint(odd_root, tmp_path_factory) -> Path:
     """The full model's checkpoint as nvs.train leaves it (untrained: equality is what is tested, not quality)."""
-    from nvs.build import build_module
+    from nvs.run.build import build_module
 
     out = tmp_path_factory.mktemp("ckpt")
     # batches of 2: each rank's 3 pairs in two batches, the padding repeat in the last one
@@ -125,7 +125,7 @@ def test_a_tiny_study_runs_through_submitit_local(objects_root, tmp_path):
 
 
 def test_gathered_rows_are_each_pair_once_in_dataset_order():
-    from nvs.gather import gather_rows
+    from nvs.module.gather import gather_rows
 
     # what two ranks hold for 5 items: rank 0 reads 0, 2, 4; rank 1 reads 1, 3 and the padding repeat of 0
     rank0 = [{"index": i, "l1": float(i)} for i in (0, 2, 4)]

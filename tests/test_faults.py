@@ -14,12 +14,12 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from nvs import atomic
-from nvs.build import build_module
-from nvs.config_check import check_cli_overrides, check_types, model_mismatch, split_overrides
-from nvs.errors import UserError
-from nvs.geometry import inverse_warp, pose_matrix, scale_intrinsics
-from nvs.run_files import write_metrics, write_per_image
+from nvs.core import atomic
+from nvs.core.errors import UserError
+from nvs.core.geometry import inverse_warp, pose_matrix, scale_intrinsics
+from nvs.run.artifacts import write_metrics, write_per_image
+from nvs.run.build import build_module
+from nvs.run.config_check import check_cli_overrides, check_types, model_mismatch, split_overrides
 from tests.conftest import CONF_DIR, compose_train
 
 REPO = Path(__file__).resolve().parents[1]
@@ -95,7 +95,7 @@ def _leftovers(d: Path) -> list[str]:
 
 
 class _OsWith:
-    """The os module with some functions replaced, for nvs.atomic only (the real os stays untouched)."""
+    """The os module with some functions replaced, for nvs.core.atomic only (the real os stays untouched)."""
 
     def __init__(self, **replaced):
         self.replaced = replaced
@@ -157,7 +157,7 @@ def test_failed_csv_write_keeps_the_old_table(tmp_path, monkeypatch):
 
 WRITER = """
 import sys
-from nvs.run_files import write_metrics
+from nvs.run.artifacts import write_metrics
 path, i = sys.argv[1], 0
 print("ready", flush=True)
 while True:

@@ -14,9 +14,9 @@ from scipy.spatial.transform import Rotation
 
 import reference_code as rc
 from nvs.convert import convert, key_map
-from nvs.errors import UserError
-from nvs.checkpoints import load_checkpoint, load_weights
-from nvs.geometry import invert_pose
+from nvs.core.errors import UserError
+from nvs.core.geometry import invert_pose
+from nvs.run.checkpoints import load_checkpoint, load_weights
 
 pytestmark = pytest.mark.skipif(not rc.available(), reason=f"the authors' code is not at {rc.REFERENCE}")
 TOL = 1e-4
@@ -90,7 +90,7 @@ def pair(request, tmp_path_factory):
     ckpt = load_checkpoint(str(ckpt_path))
     from omegaconf import OmegaConf
 
-    from nvs.build import build_module
+    from nvs.run.build import build_module
 
     module = build_module(OmegaConf.create(ckpt["nvs_config"]))
     load_weights(module, ckpt, str(ckpt_path))

@@ -1,4 +1,4 @@
-"""Every fidelity switch (nvs/fidelity.py) reaches its component: flipping it alone changes what it should change,
+"""Every fidelity switch (nvs/core/fidelity.py) reaches its component: flipping it alone changes what it should change,
 fidelity=corrected flips them all, and an unknown key or value is one clear error."""
 
 from __future__ import annotations
@@ -6,9 +6,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from nvs.build import build_module
-from nvs.errors import UserError
-from nvs.fidelity import SWITCHES
+from nvs.core.errors import UserError
+from nvs.core.fidelity import SWITCHES
+from nvs.run.build import build_module
 from tests.conftest import compose_train, fixture_batch
 
 BASE = ["paths.output_dir=/tmp/nvs_switches", "channels_last=false"]
@@ -84,7 +84,8 @@ def test_switches_reach_the_components():
     assert losses["warp"].masked and losses["recon"].side_upsample == "bilinear"
     assert module.configure_optimizers().param_groups[0]["betas"][0] == 0.9
     # ... as the functions they choose at construction (forward tests no switch)
-    from nvs import geometry, losses as L
+    from nvs.core import geometry
+    from nvs.losses import terms as L
 
     assert net.skips.downsample is geometry.downsample_depth and net.skips.scale_K is geometry.scale_intrinsics
     assert net.depth.decode_all == net.depth._jointly

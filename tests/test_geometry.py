@@ -4,7 +4,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from nvs.geometry import about_pivot, inverse_warp, invert_pose, pose_matrix, scale_intrinsics
+from nvs.core.geometry import about_pivot, inverse_warp, invert_pose, pose_matrix, scale_intrinsics
 
 
 def _K(B, f=1.0, cx=4.5, cy=3.5, dtype=torch.float32):

@@ -20,9 +20,9 @@ from hydra.utils import instantiate
 from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger, WandbLogger
 from PIL import Image
 
-from nvs.callbacks import StepProgressBar
-from nvs.quiet import silence_known_noise
-from nvs.visuals import image_grid
+from nvs.run.display_callbacks import StepProgressBar
+from nvs.run.quiet import silence_known_noise
+from nvs.run.visuals import image_grid
 from tests.conftest import compose_train
 
 REPO = Path(__file__).resolve().parents[1]
@@ -152,7 +152,7 @@ def test_a_run_logs_to_tensorboard_wandb_offline_and_csv_with_the_image_grid(obj
 def test_the_validation_grid_takes_pairs_spread_over_the_split_one_per_model():
     from types import SimpleNamespace
 
-    from nvs.callbacks import ValidationImages
+    from nvs.run.display_callbacks import ValidationImages
 
     # 4 models x 4 pairs, listed model by model as the objects format lists its validation pairs
     items = [{"src": torch.full((3, 2, 2), float(i)), "id_src": f"m{i // 4}_{i}", "index": i} for i in range(16)]
@@ -167,8 +167,8 @@ def test_the_validation_grid_takes_pairs_spread_over_the_split_one_per_model():
 
 
 def test_log_interval_is_capped_at_a_shorter_run_and_wandb_is_quiet(tmp_path):
-    from nvs.loggers import QuietWandbLogger
-    from nvs.training import _short_run
+    from nvs.run.loggers import QuietWandbLogger
+    from nvs.run.training import _short_run
 
     cfg = compose_train([f"paths.output_dir={tmp_path}", "trainer.max_steps=10"])
     assert cfg.trainer.log_every_n_steps == 25 and cfg.trainer.val_check_interval == 500

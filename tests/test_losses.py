@@ -3,9 +3,9 @@
 import pytest
 import torch
 
-from nvs.errors import UserError
-from nvs.losses import DepthConsistencyLoss, EdgeSmoothLoss, ReconLoss, VGGLoss, WarpLoss
-from nvs.types import Extras
+from nvs.core.errors import UserError
+from nvs.core.types import Extras
+from nvs.losses.terms import DepthConsistencyLoss, EdgeSmoothLoss, ReconLoss, VGGLoss, WarpLoss
 from tests.conftest import fixture_batch
 
 
@@ -114,8 +114,8 @@ def test_negative_weight_is_refused():
 
 
 def test_too_many_scale_weights_are_refused_when_the_module_is_built(tmp_path):
-    from nvs.build import build_module
-    from nvs.errors import UserError
+    from nvs.core.errors import UserError
+    from nvs.run.build import build_module
     from tests.conftest import compose_train
 
     cfg = compose_train(["experiment=tatarchenko_chairs", "loss.recon.scale_weights=[1.0,0.5,0.2,0.1]",

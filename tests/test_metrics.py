@@ -11,8 +11,8 @@ from scipy.ndimage import correlate, gaussian_filter
 from skimage.metrics import peak_signal_noise_ratio as sk_psnr
 from skimage.metrics import structural_similarity as sk_ssim
 
-from nvs import metrics as M
-from nvs.perceptual import LPIPS
+from nvs.metrics import per_image as M
+from nvs.models.perceptual import LPIPS
 
 
 def image_pair(shape=(2, 3, 40, 36), noise: float = 0.1, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -192,7 +192,7 @@ def test_compute_all_images_only_and_with_depth():
 
 
 def test_function_tables_hold_exactly_the_metric_spec_names_in_its_order():
-    from nvs import metric_spec
+    from nvs.core import metric_spec
 
     assert tuple(M.IMAGE_METRICS) == metric_spec.IMAGE_METRICS
     assert tuple(M.DEPTH_METRICS) == metric_spec.DEPTH_METRICS
@@ -206,11 +206,11 @@ def test_function_tables_hold_exactly_the_metric_spec_names_in_its_order():
 def test_a_metric_missing_from_the_spec_fails_at_import(monkeypatch):
     import importlib
 
-    from nvs import metric_spec
+    from nvs.core import metric_spec
 
     monkeypatch.setattr(metric_spec, "METRICS", metric_spec.METRICS[:-1])
     try:
-        with pytest.raises(ImportError, match="nvs.metric_spec specifies"):
+        with pytest.raises(ImportError, match="nvs.core.metric_spec specifies"):
             importlib.reload(M)
     finally:
         monkeypatch.undo()

@@ -60,7 +60,7 @@ def test_the_installed_wheel_trains_from_its_own_configs(objects_root, tmp_path)
     env["PATH"] = f"{venv / 'bin'}{os.pathsep}{env['PATH']}"
     work = tmp_path / "work"  # a directory without the checkout: nothing can come from it
     work.mkdir()
-    where = subprocess.run([str(python), "-c", "import nvs.compose as c; print(c.__file__); print(c.CONF_DIR)"],
+    where = subprocess.run([str(python), "-c", "import nvs.run.compose as c; print(c.__file__); print(c.CONF_DIR)"],
                            cwd=work, env=env, capture_output=True, text=True, check=True).stdout.split()
     assert all(Path(p).is_relative_to(venv) for p in where), where
 

@@ -7,8 +7,8 @@ import json
 import pytest
 import torch
 
-from nvs import precision
-from nvs.precision import choose, normalise
+from nvs.run import precision
+from nvs.run.precision import choose, normalise
 
 # A CPU that emulates bf16 (the AVX2-only EPYC: ~10x) and one that has it natively.
 EMULATED = {"fp32": 10.0, "cl": 9.0, "bf16_cl": 95.0}
@@ -109,7 +109,7 @@ def test_an_unwritable_cache_only_costs_the_probe(tmp_path, monkeypatch):
 
 
 def test_the_sweep_refuses_a_pinned_mode_this_machine_emulates(probed):
-    from nvs.errors import UserError
+    from nvs.core.errors import UserError
     from nvs.sweep.cost_check import check_precision
 
     class FakeJob:

@@ -10,13 +10,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from omegaconf import OmegaConf
 import torch
 
-from nvs.errors import UserError
+from nvs.core.errors import UserError
+from nvs.data.synthetic import write_objects_root, write_scenes_root
 from nvs.models.reference import GroundTruthWarp
 from nvs.models.reference_planes import ConstantDepthWarp, GroundTruthPlaneWarp
-from nvs.synthetic import write_objects_root, write_scenes_root
-from nvs.train_depth import training_mean_depth
+from nvs.run.mean_depth import training_mean_depth
 from tests.conftest import compose_train, fixture_batch
 
 REPO = Path(__file__).resolve().parents[1]
@@ -33,16 +34,13 @@ def _objects(root: Path) -> Path:
 
 
 def _data(cfg) -> dict:
-    d = cfg.data
-    return {"fmt": d.format, "root": d.root, "size": d.size, "camera": dict(d.camera), "loader": dict(d.loader),
-            "category": d.get("category"), "translation_scale": d.translation_scale,
-            "max_delta_azimuth": d.max_delta_azimuth, "train_fraction": d.get("train_fraction", 1.0)}
+    return OmegaConf.to_container(cfg.data, resolve=True)  # what conf/model/mean_depth.yaml passes: the data node
 
 
 def test_training_mean_reads_the_training_views_only(tmp_path):
     root = _objects(tmp_path / "objects")
     cfg = compose_train(["data=chairs", f"data.root={root}"])
-    from nvs.build import build_data
+    from nvs.run.build import build_data
 
     train_models = build_data(cfg).fmt.split_models("train", cfg.data.loader.val_fraction, 0)
     assert 0 < len(train_models) <= 3  # validation is carved from the training list
@@ -98,7 +96,7 @@ def test_the_reference_options_compose_for_every_dataset(model):
         cfg = compose_train([f"model={model}", f"data={data}"], config_name="evaluate")
         assert cfg.model.name == model and cfg.model.image_size == cfg.data.size
         if model == "mean_depth":
-            assert cfg.model.data.root == cfg.data.root and cfg.model.data.fmt == cfg.data.format
+            assert cfg.model.data == cfg.data  # the run's own data node, read as the run reads it
 
 
 def test_evaluating_the_floor_uses_no_test_ground_truth(tmp_path):

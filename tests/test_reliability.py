@@ -23,10 +23,11 @@ import pytest
 import torch
 from omegaconf import OmegaConf, open_dict
 
-from nvs.checkpoints import AtomicCheckpointIO, CheckpointWriteError
-from nvs.config_check import trainer_arguments
-from nvs.errors import DataError, Interrupted, UserError, exits_cleanly, user_message
-from nvs.run_files import check_creatable, remove_unstarted_run
+from nvs.core.errors import DataError, Interrupted, UserError, user_message
+from nvs.run.artifacts import check_creatable, remove_unstarted_run
+from nvs.run.checkpoints import AtomicCheckpointIO, CheckpointWriteError
+from nvs.run.cli import exits_cleanly
+from nvs.run.config_check import trainer_arguments
 from tests.conftest import compose_train
 
 REPO = Path(__file__).resolve().parents[1]
@@ -204,7 +205,7 @@ def test_lightning_misconfiguration_is_a_user_error():
 
 
 def test_nonfinite_loss_is_one_line_naming_the_real_key(tmp_path):
-    from nvs.build import build_module
+    from nvs.run.build import build_module
 
     cfg = compose_train(["model=copy_source", "loss=[recon_final]", f"paths.root_dir={tmp_path}"])
     cfg.paths.output_dir = str(tmp_path)
@@ -222,7 +223,7 @@ def test_nonfinite_loss_is_one_line_naming_the_real_key(tmp_path):
 
 
 def test_a_checkpoint_with_flipped_bytes_is_one_clear_error(tmp_path):
-    from nvs.training import _complete
+    from nvs.run.training import _complete
 
     path = tmp_path / "last.ckpt"
     torch.save({"state_dict": {"w": torch.arange(5000.0)}, "global_step": 2}, path)
@@ -271,7 +272,7 @@ def test_multirun_goes_on_after_a_failed_job_and_reports_it(objects_root, tmp_pa
 
 # -- evaluation of another root ------------------------------------------------------------------------------------------
 def test_evaluate_takes_data_root_alone(objects_root, tmp_path, monkeypatch):
-    from nvs.build import build_module
+    from nvs.run.build import build_module
 
     cfg = compose_train([*SMALL, f"paths.root_dir={tmp_path}", f"data.root={tmp_path}/moved_away"])
     cfg.paths.output_dir = str(tmp_path)
@@ -301,7 +302,7 @@ class SignalAt(L.Callback):
 
 @pytest.mark.parametrize("signum", [signal.SIGTERM, pytest.param(signal.SIGINT, marks=pytest.mark.slow)])
 def test_a_signal_saves_last_ckpt_and_says_how_to_resume(objects_root, tmp_path, signum):
-    from nvs.training import run
+    from nvs.run.training import run
 
     def cfg(kill: bool):
         c = compose_train([f"data.root={objects_root}", f"paths.root_dir={tmp_path}", *TRAIN, *SMALL,
@@ -341,7 +342,7 @@ def test_a_signal_saves_last_ckpt_and_says_how_to_resume(objects_root, tmp_path,
 
 
 def test_signal_outside_training_interrupts_at_once(tmp_path):
-    from nvs.fit_callbacks import Interruption
+    from nvs.run.standard_callbacks import Interruption
 
     stop = Interruption(tmp_path / "last.ckpt", "python -m nvs.train x=1")
     with pytest.raises(Interrupted) as err:

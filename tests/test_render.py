@@ -3,7 +3,7 @@
 The convention test is the one that matters: a rendered source view, warped into the target view with the
 rendered target depth and the K and pose THE LOADERS return, must reproduce the rendered target. It pins the
 renderer's camera (including pyrender's half-pixel principal-point offset), the formats, the loaders' pose
-direction and nvs.geometry against each other.
+direction and nvs.core.geometry against each other.
 """
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ def _datamodule(name: str, root: Path):
 def _warp_error(dm, split: str, limit: int | None = None, transpose_pose: bool = False,
                 shift_cx: float = 0.0) -> tuple[float, float]:
     """Mean L1 (on [0,1]) of the warped source vs the target over co-visible pixels, and their fraction."""
-    from nvs.geometry import inverse_warp, project_to_source, sample_at
+    from nvs.core.geometry import inverse_warp, project_to_source, sample_at
 
     ds = dm.dataset(split)
     items = [ds[i] for i in range(len(ds) if limit is None else min(limit, len(ds)))]
@@ -85,7 +85,7 @@ def _warp_error(dm, split: str, limit: int | None = None, transpose_pose: bool =
                                                                 "depth_tgt")}
     T = batch["T_tgt_src"]
     if transpose_pose:
-        from nvs.geometry import invert_pose
+        from nvs.core.geometry import invert_pose
 
         T = invert_pose(T)
     K = batch["K"].clone()

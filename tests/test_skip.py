@@ -13,13 +13,13 @@ from hypothesis import strategies as st
 from omegaconf import OmegaConf
 from scipy.spatial.transform import Rotation
 
-from nvs.build import build_module
-from nvs.errors import UserError
-from nvs.geometry import inverse_warp, max_warp_displacement, pose_matrix, project_to_source
+from nvs.core.errors import UserError
+from nvs.core.geometry import inverse_warp, max_warp_displacement, pose_matrix, project_to_source
+from nvs.core.types import Extras
 from nvs.models import skips as skips_mod
 from nvs.models.depth_decoder import DepthDecoder
-from nvs.types import Extras
 from nvs.models.skips import AdaptiveWarpedSkips, PlainSkips, WarpedSkips, level_displacement
+from nvs.run.build import build_module
 from tests.conftest import CONF_DIR, compose_train, fixture_batch
 
 F64 = torch.float64

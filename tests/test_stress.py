@@ -12,11 +12,11 @@ from kornia.geometry.camera import project_points, unproject_points
 from omegaconf import OmegaConf
 from scipy.spatial.transform import Rotation
 
-import nvs.training
 from nvs import stress
-from nvs.geometry import inverse_warp, invert_pose, pose_matrix, project_to_source
-from nvs.losses import LossTerm
-from nvs.module import NonFiniteLossError
+from nvs.core.geometry import inverse_warp, invert_pose, pose_matrix, project_to_source
+from nvs.losses.terms import LossTerm
+from nvs.module.lightning_module import NonFiniteLossError
+import nvs.run.training
 from nvs.stress.batches import adversarial_batches, stress_batch
 from nvs.stress.geometry import check_warp, geometry_cases
 from nvs.stress.gradcheck import float32_inside, float64_kept, gradcheck_cases, run_gradcheck
@@ -130,10 +130,10 @@ GRAD_CASES = gradcheck_cases()
 
 def test_gradcheck_covers_every_loss_term():
     """Every loss term class but the adversarial one (its critic trains alongside; tests/test_adversarial.py)."""
-    import nvs.losses
-    import nvs.losses_branches
+    import nvs.losses.branches
+    import nvs.losses.terms
 
-    terms = {name for module in (nvs.losses, nvs.losses_branches) for name, obj in vars(module).items()
+    terms = {name for module in (nvs.losses.terms, nvs.losses.branches) for name, obj in vars(module).items()
              if isinstance(obj, type) and issubclass(obj, LossTerm) and obj is not LossTerm}
     covered = {c.name.split(" ")[0] for c in GRAD_CASES}
     assert {"ReconLoss", "VGGLoss", "BranchReconLoss"} <= terms  # the scan finds the classes it should
@@ -198,7 +198,7 @@ def test_adversarial_batches_follow_the_contract_with_the_stress_camera():
 
 # -- precision ------------------------------------------------------------------------------------------------------
 def test_paper_model_forward_backward_under_bf16_autocast_is_finite(tmp_path):
-    from nvs.build import build_module
+    from nvs.run.build import build_module
 
     module = build_module(train_config(["model=nvs", "loss=[recon,depth_consistency,edge_smooth,warp]"],
                                          str(tmp_path)))
@@ -236,15 +236,15 @@ def _guard_run(objects_root, tmp_path, monkeypatch, nonfinite: str, nan: NaNFrom
                          "loss=[recon]", "test=false", "trainer.enable_progress_bar=false"])
     cfg.paths.output_dir = str(tmp_path)
     OmegaConf.resolve(cfg)
-    real = nvs.training.build_module
+    real = nvs.run.training.build_module
 
     def with_nan(c, **kwargs):
         module = real(c, **kwargs)
         module.losses["nan"] = nan
         return module
 
-    monkeypatch.setattr(nvs.training, "build_module", with_nan)
-    return nvs.training.run(cfg, tmp_path)
+    monkeypatch.setattr(nvs.run.training, "build_module", with_nan)
+    return nvs.run.training.run(cfg, tmp_path)
 
 
 def _finite_checkpoint(path) -> int:
@@ -291,7 +291,7 @@ def test_stress_rejects_unknown_sections(tmp_path):
 def test_training_under_stress_counts_nonfinite_steps():
     """The stress trainer must notice a NaN: a module whose loss is NaN from the second step on."""
     from nvs.models.reference import CopySource
-    from nvs.module import NVSModule
+    from nvs.module.lightning_module import NVSModule
 
     class Tiny(CopySource):
         def __init__(self):
@@ -312,7 +312,7 @@ def test_training_under_stress_counts_nonfinite_steps():
 
 @pytest.mark.slow
 def test_determinism_section_runs_the_training_library_call(tmp_path):
-    """Three `nvs.training.run` runs: the same seed agrees bitwise, the control seed differs."""
+    """Three `nvs.run.training.run` runs: the same seed agrees bitwise, the control seed differs."""
     from nvs.stress.determinism import determinism_section
 
     (same, control) = determinism_section(str(tmp_path))

@@ -388,7 +388,7 @@ def test_last_error_line():
     assert sweep.last_error_line("warn\nerror: data root missing\n") == "error: data root missing"
     assert sweep.last_error_line("just text\n") == "just text"
     assert sweep.last_error_line("just text\n", fallback=False) == ""
-    assert sweep.last_error_line("x\nnvs.module.NonFiniteLossError: nan\n") == "nvs.module.NonFiniteLossError: nan"
+    assert sweep.last_error_line("x\nnvs.module.NonFiniteLossError: nan\n") == "nvs.module.lightning_module.NonFiniteLossError: nan"
     assert sweep.last_error_line("UserWarning: careful\n", fallback=False) == ""
 
 
@@ -470,7 +470,7 @@ def test_pareto_reads_the_paper_studies_by_default(tmp_path):
 
 
 def test_unproject_inverts_the_projection():
-    from nvs.paper_figures import unproject
+    from nvs.report.figures import unproject
 
     K = torch.tensor([[100.0, 0, 31.5], [0, 120.0, 31.5], [0, 0, 1]], dtype=torch.float64)
     depth = torch.rand(64, 64, dtype=torch.float64) + 1
@@ -744,7 +744,7 @@ def test_a_result_in_runs_is_preferred_and_a_new_export_replaces_the_old(fabrica
 
 
 def test_the_stopping_rule_record_reaches_the_csv_the_header_and_the_export(fabricated, tmp_path):
-    from nvs.convergence import RECORD
+    from nvs.run.convergence import RECORD
     from nvs.sweep.collect import CONVERGENCE
 
     assert CONVERGENCE == RECORD
@@ -790,7 +790,7 @@ def test_a_tiny_study_with_the_stopping_rule_and_floors_is_rebuilt_from_its_comm
 
 def test_rows_launches_only_the_matching_rows_and_names_a_glob_that_matches_none(tmp_path, capsys):
     """--rows splits a study across sessions: only the matching rows are launched (here: planned by --dry-run)."""
-    from nvs.errors import UserError
+    from nvs.core.errors import UserError
     from nvs.sweep.__main__ import run
 
     path = _study(tmp_path).path

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from omegaconf import open_dict
 
-from nvs.errors import UserError
+from nvs.core.errors import UserError
 from nvs.sweep import jobs as sweep_jobs
 from nvs.sweep.jobs import JOB_RECORD, Status, config_changes, config_digest, plan, prepare_job_dir
 from nvs.sweep.study import load_study
@@ -121,7 +121,7 @@ def test_a_changed_value_of_an_existing_key_makes_the_job_stale(tmp_path, monkey
 
 def test_a_new_component_or_a_removed_key_makes_the_job_stale(tmp_path, monkeypatch):
     study, root = _finished(tmp_path)
-    _conf_changes(monkeypatch, lambda cfg: setattr(cfg.loss, "extra", {"_target_": "nvs.losses.X", "weight": 1.0})
+    _conf_changes(monkeypatch, lambda cfg: setattr(cfg.loss, "extra", {"_target_": "nvs.losses.terms.X", "weight": 1.0})
                   if "loss" in cfg else None)
     assert {j.row.name: j.status for j in plan(study, root)} == {"full": Status.STALE, "copy": Status.DONE}
     monkeypatch.undo()
@@ -170,7 +170,7 @@ def _loaded_after(statement: str, names: tuple[str, ...]) -> list[str]:
 
 
 def test_the_recorder_a_training_job_loads_imports_nothing_heavy():
-    heavy = ("lightning", "pandas", "nvs.build", "nvs.sweep.jobs", "nvs.sweep.study", "nvs.figures")
+    heavy = ("lightning", "pandas", "nvs.run.build", "nvs.sweep.jobs", "nvs.sweep.study", "nvs.figures")
     assert _loaded_after("import nvs.sweep.recorder", heavy) == []
     # the target that older commands and docs name still resolves, to the same class
     assert _loaded_after("import nvs.sweep as s, nvs.sweep.recorder as r; assert s.JobRecorder is r.JobRecorder",
@@ -182,7 +182,7 @@ def test_the_sweep_and_the_figures_command_lines_import_no_other_command_line():
     assert _loaded_after("import nvs.sweep.__main__", clis) == ["nvs.sweep.__main__"]
     assert _loaded_after("import nvs.figures", clis) == ["nvs.figures"]
     # what the figures library loads when it rebuilds a run
-    assert _loaded_after("import nvs.paper_figures, nvs.checkpoints, nvs.build, nvs.compose", clis) == []
+    assert _loaded_after("import nvs.report.figures, nvs.run.checkpoints, nvs.run.build, nvs.run.compose", clis) == []
 
 
 def test_a_reference_row_takes_the_data_overrides_it_reads_not_the_validation_ones(tmp_path):
@@ -209,7 +209,7 @@ def test_the_plan_composes_each_seed_as_hydra_does(tmp_path):
 def test_a_study_is_never_continued_on_another_render_of_its_data(tmp_path, objects_root):
     """Finished jobs measured on one test set, this machine's data giving another: one error before any launch,
     naming the job, both test sets and the data root. The same test set launches, and the header names it."""
-    from nvs.build import build_data
+    from nvs.run.build import build_data
     from nvs.sweep.testset import check_launch, job_test_set, local_test_set, signature
 
     cfg = sweep_jobs.compose_job("train", ["experiment=nvs_chairs", f"data.root={objects_root}", "data.size=64"])

@@ -11,7 +11,7 @@ import pytest
 from scipy.special import ndtr, stdtrit
 
 from nvs import sweep
-from nvs.metric_spec import SPECS
+from nvs.core.metric_spec import SPECS
 from nvs.sweep.bootstrap import (RESAMPLES, Paired, _draws, bootstrap, pair_up, read_seeds,
                                  tail_probability, verdict)
 from nvs.sweep.paper_order import decide, ordering_lines

@@ -1,12 +1,12 @@
-"""nvs.synthetic: the one synthetic batch follows the data contract and the data configs' cameras."""
+"""nvs.data.synthetic: the one synthetic batch follows the data contract and the data configs' cameras."""
 
 import pytest
 import torch
 from omegaconf import OmegaConf
 
-from nvs.compose import CONF_DIR
-from nvs.geometry import inverse_warp
-from nvs.synthetic import CAMERAS, blob_images, synthetic_batch, write_objects_root, write_scenes_root
+from nvs.core.geometry import inverse_warp
+from nvs.data.synthetic import CAMERAS, blob_images, synthetic_batch, write_objects_root, write_scenes_root
+from nvs.run.compose import CONF_DIR
 
 
 @pytest.mark.parametrize("kind,config", [("objects", "chairs"), ("scenes", "drive")])

@@ -9,8 +9,8 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from nvs.build import build_module, parameter_count
-from nvs.runs import REFERENCE_MODELS
+from nvs.models.reference import REFERENCE_MODELS
+from nvs.run.build import build_module, parameter_count
 from tests.conftest import CONF_DIR, compose_train, fixture_batch
 
 REPO = Path(__file__).resolve().parents[1]
@@ -92,7 +92,7 @@ def test_a_size_the_rule_rejects_does_not_halve_exactly():
 @pytest.mark.parametrize("size", [48, 72, 100])
 def test_sizes_the_network_cannot_take_are_one_clear_error(size, tmp_path):
     """Four halvings down to the latent and back: a size not divisible by 16, or below 64, fails at build time."""
-    from nvs.errors import UserError
+    from nvs.core.errors import UserError
 
     cfg = compose_train([f"data.size={size}", f"paths.root_dir={tmp_path}", "loss=[recon]"])
     cfg.paths.output_dir = str(tmp_path)
@@ -212,7 +212,7 @@ def test_evaluate_checkpoint_and_reference_models(objects_root, tmp_path):
 
 
 def test_onecycle_schedule_warms_up_then_anneals_over_max_steps(tmp_path):
-    from nvs.build import build_module
+    from nvs.run.build import build_module
 
     cfg = compose_train(["scheduler=onecycle", "trainer.max_steps=20", "loss=[recon]", "data.size=64",
                          f"paths.root_dir={tmp_path}"])

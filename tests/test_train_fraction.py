@@ -6,10 +6,10 @@ import pytest
 from omegaconf import OmegaConf
 
 from conftest import compose_train, make_objects_root
-from nvs.build import build_data
+from nvs.core.errors import UserError
 from nvs.data.datamodule import train_subset
 from nvs.data.shapenet import parse_stem
-from nvs.errors import UserError
+from nvs.run.build import build_data
 
 MODELS = tuple(f"m{i}" for i in range(11))  # 10 listed for training (1 of them carved for validation), 1 test
 

@@ -1,4 +1,4 @@
-"""The data contract of nvs.types holds for what the loaders yield and what every network returns."""
+"""The data contract of nvs.core.types holds for what the loaders yield and what every network returns."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from nvs.build import build_data, build_module
-from nvs.types import RGB_BRANCHES, Batch, Extras, Outputs
+from nvs.core.types import RGB_BRANCHES, Batch, Extras, Outputs
+from nvs.run.build import build_data, build_module
 from tests.conftest import compose_train, fixture_batch
 
 EXTRAS = frozenset({Extras.DEPTH_FROM_TGT, Extras.DEPTH_SRC, Extras.WARPED_SRC})
@@ -66,7 +66,7 @@ def test_every_network_returns_the_contract(model, tmp_path):
 
 @pytest.mark.parametrize("model", ["copy_source", "gt_warp"])
 def test_training_a_reference_model_says_it_has_nothing_to_train(model, tmp_path):
-    from nvs.errors import UserError
+    from nvs.core.errors import UserError
 
     cfg = compose_train([f"model={model}", f"paths.root_dir={tmp_path}"])  # the default loss list: recon at 4 scales
     cfg.paths.output_dir = str(tmp_path)

@@ -9,8 +9,8 @@ import pytest
 import torch
 from torch import nn
 
-from nvs import perceptual as vgg
-from nvs.perceptual import LPIPS, VGG16Features, load_weights
+from nvs.models import perceptual as vgg
+from nvs.models.perceptual import LPIPS, VGG16Features, load_weights
 
 
 @pytest.fixture(scope="module")

@@ -14,8 +14,8 @@ import pytest
 import torch
 from PIL import Image
 
-from nvs.errors import UserError
-from nvs.pointcloud import depth_to_points, read_ply, write_ply
+from nvs.core.errors import UserError
+from nvs.report.pointcloud import depth_to_points, read_ply, write_ply
 from nvs.viewer.controls import ObjectControls, SceneControls, check_values
 from nvs.viewer.paths import camera_path
 from nvs.viewer.session import Source, ViewSession

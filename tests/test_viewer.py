@@ -13,11 +13,11 @@ import pytest
 import torch
 from PIL import Image
 
+from nvs.core.errors import UserError
+from nvs.core.types import Extras
 from nvs.data.datamodule import build_datamodule
 from nvs.data.kitti import ScenesFormat
 from nvs.data.shapenet import ObjectsFormat
-from nvs.errors import UserError
-from nvs.types import Extras
 from nvs.viewer.controls import ObjectControls, SceneControls, build_controls
 from nvs.viewer.images import decode_upload
 from nvs.viewer.load import measure
@@ -201,7 +201,7 @@ def test_point_cloud_and_video_endpoints(viewer_url, tmp_path):
 
     import imageio_ffmpeg
 
-    from nvs.pointcloud import read_ply
+    from nvs.report.pointcloud import read_ply
 
     with urllib.request.urlopen(f"{viewer_url}api/ply?source=g1&azimuth=20&elevation=10", timeout=60) as r:
         assert r.headers["Content-Disposition"].startswith('attachment; filename="') and ".ply" in \

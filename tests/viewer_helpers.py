@@ -13,7 +13,7 @@ def built_net(tmp_path, *overrides: str):
     """The network of the composed training config (default: the full model), seeded, in eval mode."""
     import torch
 
-    from nvs.build import build_module
+    from nvs.run.build import build_module
 
     cfg = compose_train([f"paths.root_dir={tmp_path}", "loss=[recon_final]", *overrides])
     cfg.paths.output_dir = str(tmp_path)

@@ -13,14 +13,15 @@ import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from nvs.atomic import write_json, write_text
-import nvs.bench.measure as measure
 from nvs.bench.contenders import MODES
+import nvs.bench.measure as measure
 from nvs.bench.reference import check_path
-from nvs.compose import CONF_DIR
-from nvs.errors import UserError, exits_cleanly
-from nvs.precision import choose, native_bf16_flags
-from nvs.provenance import command_line, device_name, header
+from nvs.core.atomic import write_json, write_text
+from nvs.core.errors import UserError
+from nvs.core.provenance import command_line, device_name, header
+from nvs.run.cli import exits_cleanly
+from nvs.run.compose import CONF_DIR
+from nvs.run.precision import choose, native_bf16_flags
 
 
 def _slug(name: str) -> str:

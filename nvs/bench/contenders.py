@@ -15,8 +15,9 @@ import torch
 
 from nvs.bench.measure import state_bytes
 from nvs.bench.reference import Reference
-from nvs.compose import compose
-from nvs.synthetic import synthetic_batch
+from nvs.core.protocols import HasCritic
+from nvs.data.synthetic import synthetic_batch
+from nvs.run.compose import compose
 
 MODES = {
     # name: (channels_last, autocast dtype or None, compile)
@@ -68,13 +69,13 @@ def train_config(overrides: list[str], size: int, root_dir: str, channels_last: 
 def nvs_contender(overrides: list[str], mode: str, batches: Batches, device: torch.device, root_dir: str,
                   size: int) -> Contender:
     """A model option (train.yaml overrides) in one of MODES."""
-    from nvs.build import build_module, parameter_count
+    from nvs.run.build import build_module, parameter_count
 
     channels_last, dtype, compiled = MODES[mode]
     module = build_module(train_config(overrides, size, root_dir, channels_last)).to(device)
     opt = module.configure_optimizers()
     opt = opt["optimizer"] if isinstance(opt, dict) else opt
-    critics = [t for t in module.losses.values() if hasattr(t, "update_critic")]
+    critics = [t for t in module.losses.values() if isinstance(t, HasCritic)]
 
     def autocast():
         return torch.autocast(device.type, dtype=dtype) if dtype else contextlib.nullcontext()

@@ -10,9 +10,9 @@ from __future__ import annotations
 import torch
 from torch.profiler import ProfilerActivity, profile
 
-import nvs.bench.measure as measure
 from nvs.bench.contenders import make_batches, nvs_contender
-from nvs.provenance import markdown as provenance_markdown
+import nvs.bench.measure as measure
+from nvs.core.provenance import markdown as provenance_markdown
 
 _CONVERSIONS = ("aten::to", "aten::_to_copy", "aten::to_dtype", "aten::_autocast_to_reduced_precision",
                 "aten::_autocast_to_full_precision")

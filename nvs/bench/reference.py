@@ -24,8 +24,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from nvs.errors import UserError
-from nvs.geometry import invert_pose
+from nvs.core.errors import UserError
+from nvs.core.geometry import invert_pose
 
 SIZE = 256  # the only image size the authors' networks take
 _TOP_LEVEL = ("models", "util", "data", "options", "torchvision", "cv2")
@@ -40,7 +40,7 @@ def check_path(path: str | Path) -> Path:
 
 def _vgg16_features() -> nn.Sequential:
     """torchvision's VGG16 ``features`` layout (conv, ReLU ..., max-pool after each block) with nvs's weights."""
-    from nvs.perceptual import load_weights
+    from nvs.models.perceptual import load_weights
 
     w = load_weights()
     layers, i = [], 0

@@ -7,7 +7,7 @@ from pathlib import Path
 from nvs.bench.goals import goal_lines
 from nvs.bench.measure import MODE_PEAK
 from nvs.bench.run import REFERENCE, versus_reference
-from nvs.provenance import markdown as provenance_markdown
+from nvs.core.provenance import markdown as provenance_markdown
 
 NAN = float("nan")
 

@@ -6,8 +6,8 @@ import gc
 
 import torch
 
-import nvs.bench.measure as measure
 from nvs.bench.contenders import Batches, Contender, make_batches, nvs_contender, reference_contender
+import nvs.bench.measure as measure
 from nvs.bench.reference import SIZE as REFERENCE_SIZE
 
 REFERENCE = "authors_code"  # the row name of the authors' code

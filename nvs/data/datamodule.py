@@ -10,11 +10,11 @@ import lightning as L
 import torch
 from torch.utils.data import DataLoader, Dataset
 
+from nvs.core.errors import DataError, UserError
+from nvs.core.geometry import scale_intrinsics
 from nvs.data.files import depth_problem, image_problem
 from nvs.data.kitti import ScenesFormat
 from nvs.data.shapenet import ObjectsFormat, object_pairs, random_partner
-from nvs.errors import DataError, UserError
-from nvs.geometry import scale_intrinsics
 
 
 class Format(Protocol):

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 from PIL import Image, UnidentifiedImageError
 
-from nvs.errors import DataError
+from nvs.core.errors import DataError
 
 # Modes that convert to RGB without losing meaning; anything else (16-bit, float, CMYK, 1-bit) is refused.
 _ACCEPTED_MODES = {"RGB", "RGBA", "L", "P", "LA"}

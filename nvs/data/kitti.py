@@ -30,8 +30,8 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
+from nvs.core.errors import DataError
 from nvs.data.files import parse_float, read_depth, read_image, read_lines, read_pair_lines
-from nvs.errors import DataError
 
 _SPLIT_FILES = {"train": "pairs_train.txt", "val": "pairs_val.txt", "test": "eval_kitti.txt"}
 

@@ -23,8 +23,8 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
+from nvs.core.errors import DataError
 from nvs.data.files import read_depth, read_id_lines, read_ids, read_image, read_pair_lines, read_pairs
-from nvs.errors import DataError
 
 AZIMUTHS = tuple(range(0, 360, 20))
 ELEVATIONS = (0, 10, 20)

@@ -6,7 +6,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from nvs.choices import check_choice
+from nvs.core.choices import check_choice
 
 NORMS = {
     "instance": lambda c: nn.InstanceNorm2d(c, affine=False),

@@ -3,7 +3,7 @@ fronto-parallel plane per sample predicted from the latent, or the data's ground
 
 Every source is called as ``source(z_t, z_s, encode_target, batch, needs) -> {"depth": (B,1,S,S), extras...}``:
 the target depth of the transformed latent z_t (B,n,3) plus the depth extras the losses asked for (``needs``,
-see ``nvs.types.Extras``). ``encode_target()`` returns the target image's own latent and is called only when
+see ``nvs.core.types.Extras``). ``encode_target()`` returns the target image's own latent and is called only when
 depth consistency asks for it.
 """
 
@@ -14,10 +14,10 @@ from collections.abc import Callable
 import torch
 import torch.nn as nn
 
-from nvs.errors import UserError
-from nvs.choices import check_choice
+from nvs.core.choices import check_choice
+from nvs.core.errors import UserError
+from nvs.core.types import Batch, Extras, Outputs
 from nvs.models.depth_decoder import DepthDecoder
-from nvs.types import Batch, Extras, Outputs
 
 
 NORM_BATCHES = ("separate", "joint")

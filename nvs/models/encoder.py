@@ -6,7 +6,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from nvs.choices import check_choice
+from nvs.core.choices import check_choice
 from nvs.models.blocks import NORMS, PADDINGS, conv3, down
 
 SKIP_CHANNELS = {"conv0": 64, "conv2": 128, "conv3": 256, "conv4": 256}

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import torch
 
-from nvs.geometry import about_pivot
-from nvs.choices import check_choice
+from nvs.core.choices import check_choice
+from nvs.core.geometry import about_pivot
 
 ROTATIONS = ("code", "exact")
 

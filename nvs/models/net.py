@@ -7,13 +7,13 @@ from collections.abc import Callable
 import torch
 import torch.nn as nn
 
-from nvs.choices import check_choice
+from nvs.core.choices import check_choice
+from nvs.core.types import Batch, Extras, Outputs, to_image_range, to_model_range
 from nvs.models.blocks import init_weights
 from nvs.models.encoder import Encoder
 from nvs.models.latent import ROTATIONS, transform_latent
 from nvs.models.pixel_decoder import PixelDecoder
 from nvs.models.warp import check_warp, warp
-from nvs.types import Batch, Extras, Outputs, to_image_range, to_model_range
 
 # An encoded source image: latent points z_s (B,n,3) and the encoder's skip features {level: (B,C,h,w)}.
 Encoded = tuple[torch.Tensor, dict[str, torch.Tensor]]

@@ -5,9 +5,9 @@ from __future__ import annotations
 import torch
 import torch.nn as nn
 
-from nvs.choices import check_choice
+from nvs.core.choices import check_choice
+from nvs.core.scales import UPSAMPLES, upsample_side
 from nvs.models.blocks import NORMS, Trunk, UpStage, act
-from nvs.scales import UPSAMPLES, upsample_side
 from nvs.models.encoder import SKIP_CHANNELS
 
 

@@ -5,8 +5,12 @@ from __future__ import annotations
 import torch
 import torch.nn as nn
 
-from nvs.geometry import inverse_warp
-from nvs.types import Batch, Outputs
+from nvs.core.geometry import inverse_warp
+from nvs.core.types import Batch, Outputs
+
+# Models evaluated without training (``nvs.evaluate model=...``, ``conf/model/<name>.yaml``), the floors and ceilings of every table: copying the
+# source, the ground-truth warp, the constant depth at the training views' mean, each test image's ground-truth plane.
+REFERENCE_MODELS = ("copy_source", "gt_warp", "mean_depth", "gt_plane")
 
 
 class CopySource(nn.Module):

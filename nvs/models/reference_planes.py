@@ -1,7 +1,7 @@
 """Reference rows that predict one depth plane and warp the source with it (no training): the floors of a depth table.
 
 ``ConstantDepthWarp``: the same fronto-parallel plane for every image, at a depth fixed before testing (the mean
-depth of the training views, computed by ``nvs.train_depth``): it reads no test ground truth, so a trained depth
+depth of the training views, computed by ``nvs.run.mean_depth``): it reads no test ground truth, so a trained depth
 decoder must beat it. ``GroundTruthPlaneWarp``: each test image's own plane at the mean of its ground-truth depth,
 an oracle (it reads the target's depth) that shows what the best single plane per image reaches. Both warp the
 source by their plane as ``GroundTruthWarp`` does (pixels with no correspondence: white for objects, the source pixel
@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import torch
 
-from nvs.geometry import inverse_warp
+from nvs.core.geometry import inverse_warp
+from nvs.core.types import Batch, Outputs
 from nvs.models.reference import GroundTruthWarp
-from nvs.types import Batch, Outputs
 
 
 class _PlaneWarp(GroundTruthWarp):

@@ -13,8 +13,8 @@ import torch.nn as nn
 
 import torch.nn.functional as F
 
-from nvs.geometry import downsample_depth, max_warp_displacement, scale_intrinsics
-from nvs.choices import check_choice
+from nvs.core.choices import check_choice
+from nvs.core.geometry import downsample_depth, max_warp_displacement, scale_intrinsics
 from nvs.models.encoder import SKIP_CHANNELS, SKIP_STRIDES
 from nvs.models.warp import check_warp, warp
 
@@ -55,7 +55,7 @@ class _WarpingSkips(_LevelSkips):
 
     ``depth_downsample``: ``nearest`` (the code: every stride-th pixel, F.interpolate's default) or ``area``
     (the mean over each block, matching ``intrinsics_scaling=exact``); ``intrinsics_scaling``: ``code`` (fx, fy,
-    cx, cy times 1/stride) or ``exact`` (pixel centres preserved, ``nvs.geometry.scale_intrinsics``);
+    cx, cy times 1/stride) or ``exact`` (pixel centres preserved, ``nvs.core.geometry.scale_intrinsics``);
     ``align`` / ``padding``: see ``nvs.models.warp``.
     """
 

@@ -1,4 +1,4 @@
-"""The feature/image warp as the network uses it: exact (``nvs.geometry.inverse_warp``) or as the authors' code does.
+"""The feature/image warp as the network uses it: exact (``nvs.core.geometry.inverse_warp``) or as the authors' code does.
 
 Two independent switches, both defaulting to the authors' code:
     align:   ``code``  - pixel coordinates normalised by (W-1) (align_corners=True's convention) but sampled with
@@ -16,8 +16,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from nvs.geometry import BORDER_TOLERANCE, MIN_DEPTH, inverse_warp, invert_pose
-from nvs.choices import check_choice
+from nvs.core.choices import check_choice
+from nvs.core.geometry import BORDER_TOLERANCE, MIN_DEPTH, inverse_warp, invert_pose
 
 ALIGNS = ("code", "exact")
 WARP_PADDINGS = ("border", "zeros")

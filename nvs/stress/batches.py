@@ -1,4 +1,4 @@
-"""The batches the stress sections feed: plausible ones per data kind and adversarial ones, all nvs.synthetic's.
+"""The batches the stress sections feed: plausible ones per data kind and adversarial ones, all nvs.data.synthetic's.
 
 The stress cameras put the principal point at the image centre (S-1)/2 (the data cameras: 0.125 px right and down
 at 64^2); the objects' focal length is the chairs' at 64^2, the scenes' a wide 40 px.
@@ -13,15 +13,15 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from nvs.geometry import pose_matrix
-from nvs.synthetic import about_point, rotation, synthetic_batch
+from nvs.core.geometry import pose_matrix
+from nvs.data.synthetic import about_point, rotation, synthetic_batch
 
 OBJECT_F, SCENE_F, CENTRE = 120.0, 40.0, (0.0, 0.0, 2.0)
 
 
 def batch_of(kind: str, images, pose: torch.Tensor | None = None, focal: float | None = None,
              depth: float | None = None, seed: int = 0, B: int = 2, S: int = 64) -> dict:
-    """A stress batch of ``kind`` ('objects' | 'scenes'): nvs.synthetic's with the stress camera."""
+    """A stress batch of ``kind`` ('objects' | 'scenes'): nvs.data.synthetic's with the stress camera."""
     if not isinstance(images, str):
         B, _, S, _ = images[0].shape
     focal = (OBJECT_F if kind == "objects" else SCENE_F) if focal is None else focal

@@ -7,8 +7,8 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from nvs.compose import compose
-from nvs.synthetic import write_objects_root
+from nvs.data.synthetic import write_objects_root
+from nvs.run.compose import compose
 
 DETERMINISM_STEPS = 4
 
@@ -16,10 +16,10 @@ DETERMINISM_STEPS = 4
 def determinism_run(data_root: Path, out_dir: Path, seed: int, steps: int = DETERMINISM_STEPS) -> dict:
     """A short training run (train, validate, test) on the fixture dataset -> its test metrics.
 
-    The library call ``nvs.training.run`` that ``python -m nvs.train`` makes, in this process, on the real
+    The library call ``nvs.run.training.run`` that ``python -m nvs.train`` makes, in this process, on the real
     train.yaml with these overrides.
     """
-    from nvs.training import run
+    from nvs.run.training import run
 
     overrides = [f"data.root={data_root}", f"seed={seed}", f"trainer.max_steps={steps}",
                  f"trainer.val_check_interval={steps // 2}", "data.loader.batch_size=2", "loss=[recon,warp]",

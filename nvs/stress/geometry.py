@@ -6,10 +6,10 @@ from dataclasses import dataclass
 
 import torch
 
-from nvs.geometry import MIN_DEPTH, inverse_warp, pose_matrix
+from nvs.core.geometry import MIN_DEPTH, inverse_warp, pose_matrix
+from nvs.data.synthetic import about_point, intrinsics, rotation
 from nvs.stress.batches import CENTRE
 from nvs.stress.harness import all_finite
-from nvs.synthetic import about_point, intrinsics, rotation
 
 
 @dataclass

@@ -8,9 +8,9 @@ from dataclasses import dataclass
 import torch
 from torch.overrides import TorchFunctionMode
 
-from nvs.geometry import inverse_warp, pose_matrix
+from nvs.core.geometry import inverse_warp, pose_matrix
+from nvs.data.synthetic import about_point, intrinsics, rotation
 from nvs.stress.batches import CENTRE
-from nvs.synthetic import about_point, intrinsics, rotation
 
 
 class float64_kept(TorchFunctionMode):  # noqa: N801 - used as a context manager, named like one
@@ -43,10 +43,10 @@ def _rand(*shape, low=0.0, high=1.0, g=None) -> torch.Tensor:
 
 def gradcheck_cases(size: int = 8, seed: int = 0) -> list[GradcheckCase]:
     """The warp (w.r.t. image, depth, K, pose), the depth heads and every loss term, on float64 inputs."""
-    from nvs.losses import DepthConsistencyLoss, EdgeSmoothLoss, ReconLoss, VGGLoss, WarpLoss
-    from nvs.losses_branches import BranchReconLoss
+    from nvs.core.types import Extras
+    from nvs.losses.branches import BranchReconLoss
+    from nvs.losses.terms import DepthConsistencyLoss, EdgeSmoothLoss, ReconLoss, VGGLoss, WarpLoss
     from nvs.models.depth_head import BoundedDepth, DisparityDepth
-    from nvs.types import Extras
 
     g = torch.Generator().manual_seed(seed)
     dt, S = torch.float64, size

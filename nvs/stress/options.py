@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from omegaconf import DictConfig
 
-from nvs.compose import CONF_DIR, compose
-from nvs.runs import REFERENCE_MODELS as NO_TRAINING_MODELS  # evaluated without training: nothing to stress
+from nvs.models.reference import REFERENCE_MODELS as NO_TRAINING_MODELS  # evaluated without training: nothing to stress
+from nvs.run.compose import CONF_DIR, compose
 
 
 def train_config(overrides: list[str], work: str) -> DictConfig:

@@ -7,10 +7,10 @@ from collections.abc import Callable
 
 import torch
 
+from nvs.data.synthetic import about_point, intrinsics, rotation
 from nvs.stress.batches import CENTRE, OBJECT_F, stress_batch
 from nvs.stress.harness import all_finite, quiet, yes
 from nvs.stress.options import model_options, train_config
-from nvs.synthetic import about_point, intrinsics, rotation
 
 
 def forward_backward(module, batch: dict, autocast: tuple[str, torch.dtype] | None):
@@ -60,7 +60,7 @@ def warp_position_rows(sizes=(64, 256)) -> list[list]:
     ``project_to_source`` alone; *warped skip*: the paper's model's code path, depth head -> ``WarpedSkips`` (conv0)
     -> ``grid_sample``.
     """
-    from nvs.geometry import project_to_source
+    from nvs.core.geometry import project_to_source
     from nvs.models.depth_head import BoundedDepth
     from nvs.models.skips import WarpedSkips
 
@@ -99,7 +99,7 @@ def autocast_modes() -> list[tuple[str, torch.dtype]]:
 
 
 def precision_section(work: str) -> list[list]:
-    from nvs.build import build_module
+    from nvs.run.build import build_module
 
     rows = []
     for label, overrides, kind in model_options():

@@ -14,9 +14,9 @@ from collections.abc import Callable
 
 import torch
 
-from nvs.atomic import write_text
-from nvs.compose import CONF_DIR
-from nvs.provenance import command_line, header, markdown
+from nvs.core.atomic import write_text
+from nvs.core.provenance import command_line, header, markdown
+from nvs.run.compose import CONF_DIR
 from nvs.stress.determinism import DETERMINISM_STEPS, determinism_section
 from nvs.stress.geometry import geometry_section
 from nvs.stress.gradcheck import gradcheck_section
@@ -57,7 +57,7 @@ TRAINING = ("{total} Adam steps in all (lr 1e-3, 10x the paper's), B=2, 64x64, "
             "`torch.autograd.set_detect_anomaly(True)`; each module keeps training across its batch "
             "kinds in order; one runs under bf16 autocast. Counts are steps with a non-finite value; "
             "*error* is what anomaly detection raised, if anything.")
-DETERMINISM = (f"Three short `nvs.training.run` runs of the paper's model ({DETERMINISM_STEPS} steps with "
+DETERMINISM = (f"Three short `nvs.run.training.run` runs of the paper's model ({DETERMINISM_STEPS} steps with "
                "`loss=[recon,warp]`, validation, test on 4 pairs) on a generated 4-model objects dataset, CPU: the "
                "same seed twice, then another seed as a control that the comparison can fail.")
 

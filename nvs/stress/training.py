@@ -76,7 +76,7 @@ def stress_configs(steps: int) -> list[tuple[str, list[str], str, int, torch.dty
 
 def training_section(work: str, steps_per_kind: int) -> tuple[list[list], int]:
     """(rows, total steps) of every stress config across its batch family."""
-    from nvs.build import build_module
+    from nvs.run.build import build_module
 
     rows, total = [], 0
     for label, overrides, family, n, autocast in stress_configs(steps_per_kind):

@@ -6,9 +6,9 @@ job), ``collect`` (one record per job, the CSV), ``bootstrap`` (the two-level bo
 ``verdict_trace`` (a verdict per test group: wins, sign test, the groups that undo it), ``testset`` (the test set a
 job was measured on), ``goal_lines`` (the converged studies' goals, rows against a base row), ``paper_order`` (the
 rows against the paper's order), ``per_model_plot`` (their per-model figure), ``tables`` (the Markdown tables, cost
-tables) and ``__main__`` (the command line). Names are
-also reachable as ``nvs.sweep.<name>``, loaded on first use, so that importing ``nvs.sweep.recorder`` inside a
-training job loads nothing else.
+tables), ``paper_tally`` (the committed tables' count of the paper's orderings) and ``__main__`` (the command
+line). Names are also reachable as ``nvs.sweep.<name>``, loaded on first use, so that importing
+``nvs.sweep.recorder`` inside a training job loads nothing else.
 """
 
 from __future__ import annotations
@@ -34,11 +34,12 @@ _WHERE = {
                   "verdict"),
     "verdict_trace": ("Trace", "sign_test", "flip_set", "trace"),
     "per_model_plot": ("per_model_png",),
+    "paper_tally": ("tally", "read_orderings"),
     "__main__": ("run", "main"),
 }
 _MODULE_OF = {name: module for module, names in _WHERE.items() for name in names}
-_SHARED = {"UserError": "nvs.errors", "CONF_DIR": "nvs.compose", "METRICS": "nvs.metric_spec",
-           "IMAGE_METRICS": "nvs.metric_spec", "DEPTH_METRICS": "nvs.metric_spec"}
+_SHARED = {"UserError": "nvs.core.errors", "CONF_DIR": "nvs.run.compose", "METRICS": "nvs.core.metric_spec",
+           "IMAGE_METRICS": "nvs.core.metric_spec", "DEPTH_METRICS": "nvs.core.metric_spec"}
 
 
 def __getattr__(name: str):

@@ -32,8 +32,8 @@ import signal
 import sys
 from pathlib import Path
 
-from nvs.errors import UserError
-from nvs.runs import Run
+from nvs.core.errors import UserError
+from nvs.run.finished import Run
 from nvs.sweep.cost_check import check_precision
 from nvs.sweep.export import export_jobs, export_root
 from nvs.sweep.jobs import Job, Status, plan, prepare_job_dir, to_launch
@@ -112,7 +112,7 @@ def run(argv: list[str] | None = None) -> int:
     if args.collect_only and not root.is_dir():
         raise UserError(f"--collect-only {root}: no such directory")
     if not args.dry_run:  # before any job runs: the tables must have somewhere to go
-        from nvs.run_files import check_writable  # pandas: only when something is written
+        from nvs.run.artifacts import check_writable  # pandas: only when something is written
 
         check_writable(args.results)
     jobs = plan(study, root, extra, exported)
@@ -163,7 +163,7 @@ def run(argv: list[str] | None = None) -> int:
     print(f"[sweep] wrote {csv_path} and {md_path} ("
           + ", ".join(f"{n} {s}" for s, n in sorted(counts.items())) + ")", file=sys.stderr)
     if args.figures:
-        from nvs.paper_figures import make_figures
+        from nvs.report.figures import make_figures
 
         # Drawing needs a trained job's checkpoint: committed jobs without their run directory are left out.
         dirs = [(j, root / j.dir.name if (root / j.dir.name / "checkpoints").is_dir() else j.dir)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from nvs.metric_spec import METRICS
+from nvs.core.metric_spec import METRICS
 from nvs.sweep.jobs import Job, Status, read_json, stale_error
 from nvs.sweep.study import Study
 
@@ -17,7 +17,7 @@ SKIP_LEVELS = ("conv0", "conv2", "conv3", "conv4")
 # Fraction of (sample, level) warps an adaptive-skips model skipped at test time, overall and per level.
 SKIP_FRACTIONS = ("warp_skipped", *(f"warp_skipped_{lv}" for lv in SKIP_LEVELS))
 # Costs read from metrics.json: eval forward time per test image (no metrics), median train step time.
-# The stopping rule's record (nvs.convergence.RECORD; not imported here: that module loads Lightning).
+# The stopping rule's record (nvs.run.convergence.RECORD; not imported here: that module loads Lightning).
 CONVERGENCE = "convergence.json"
 COSTS = ("eval_ms_per_image", "eval_forward_ms_per_image", "train_step_ms")
 CSV_COLUMNS = ["study", "row", "label", "kind", "data", "seed", "status", "error", *METRICS, "n_pairs", "params",

@@ -8,10 +8,10 @@ budget a study needs for the row to have learned what it will learn at this size
 
 from __future__ import annotations
 
-import io
 import math
 from pathlib import Path
 
+from nvs.report.png import figure_png
 from nvs.sweep.collect import CONVERGENCE
 from nvs.sweep.jobs import read_json
 
@@ -87,7 +87,4 @@ def curves_png(records: list[dict]) -> bytes | None:
         ax_t.set(title=f"{data}: against training wall time", xlabel="minutes", ylabel="val L1")
         ax_s.legend(fontsize=7)
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90)
-    plt.close(fig)
-    return buf.getvalue()
+    return figure_png(fig, dpi=90)

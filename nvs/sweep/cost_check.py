@@ -3,14 +3,14 @@
 A study pins ``trainer.precision`` and ``channels_last`` in its overrides (they are part of every job's key), so a
 committed job never goes stale because another machine would pick another mode under ``precision=auto``. The price
 is that a pinned bf16 runs emulated on a CPU without native bf16 (AVX2-only: ~10x the planned cost). This check times
-the pinned mode against the fastest (nvs.precision's probe, cached) and refuses such a launch unless the user accepts
+the pinned mode against the fastest (nvs.run.precision's probe, cached) and refuses such a launch unless the user accepts
 the cost; ``trainer.precision=...`` on the sweep's command line instead makes other jobs (another key), which the
 tables mark with their precision.
 """
 
 from __future__ import annotations
 
-from nvs.errors import UserError
+from nvs.core.errors import UserError
 from nvs.sweep.jobs import Job
 
 ACCEPT_FLAG = "--accept-precision"
@@ -34,7 +34,7 @@ def check_precision(launching: list[Job], threads: int, remote: bool, accept: bo
         return
     import torch
 
-    from nvs.precision import WARN_SLOWDOWN, choose
+    from nvs.run.precision import WARN_SLOWDOWN, choose
 
     before = torch.get_num_threads()
     torch.set_num_threads(threads)  # the probe at the jobs' thread count (it is part of the cache key)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from nvs.metric_spec import SPECS
+from nvs.core.metric_spec import SPECS
 from nvs.sweep.bootstrap import LEVEL, interval_words, one_seed_note, paired_gap, read_seeds, verdict
 from nvs.sweep.paper_order import signed
 from nvs.sweep.testset import job_test_set

@@ -32,15 +32,15 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from nvs.atomic import write_json
-from nvs.compose import compose
+from nvs.core.atomic import write_json
+from nvs.core.legacy import SAME_BEHAVIOUR
+from nvs.run.compose import compose
+from nvs.sweep.recorded import as_today
 from nvs.sweep.recorder import FAILED, STDERR
 from nvs.sweep.study import Row, Study
 
 JOB_RECORD = "sweep_job.json"
 RECORD_VERSION = 2  # 2: the key is made of the row's overrides; the config is checked with config_changes
-# (key, stored, now): defaults renamed, behaviour kept (nvs.evaluate's null -> auto: a reference row runs 32-true)
-SAME_BEHAVIOUR = {("precision", None, "auto")}
 # Keys that place or display a run but do not change its result; left out of the key and of the stored config.
 NEUTRAL_KEYS = ("paths", "hydra", "ckpt_path", "out_dir", "task_name", "tags",
                 "trainer.enable_progress_bar", "trainer.enable_model_summary")
@@ -208,7 +208,7 @@ def stale_reason(record: dict | None, key: str, fingerprint: dict | None) -> str
     if fingerprint is None:
         return "" if record.get("key") == key else "the row's overrides changed"
     same = record.get("digest") == config_digest(fingerprint)
-    changed = [] if same else config_changes(record.get("config"), fingerprint)
+    changed = [] if same else config_changes(as_today(record.get("config")), fingerprint)
     if changed:
         return f"config changed: {', '.join(changed[:6])}"
     if record.get("version") is not None and record.get("key") != key:

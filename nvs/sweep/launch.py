@@ -19,8 +19,8 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
-from nvs.atomic import write_text
-from nvs.errors import UserError
+from nvs.core.atomic import write_text
+from nvs.core.errors import UserError
 from nvs.sweep import recorder
 from nvs.sweep.jobs import Job, Status, is_hydra, refresh, row_overrides
 from nvs.sweep.progress import Progress

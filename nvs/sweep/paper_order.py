@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nvs.metric_spec import SPECS
+from nvs.core.metric_spec import SPECS
 from nvs.sweep.bootstrap import LEVEL, Gap, bootstrap, interval_words, one_seed_note, pair_up, read_seeds
 from nvs.sweep.bootstrap import verdict as decide_gap
 from nvs.sweep.verdict_trace import Trace, oriented, trace, trace_text

@@ -3,11 +3,11 @@
 
 from __future__ import annotations
 
-import io
 
 import numpy as np
 
-from nvs.metric_spec import SPECS
+from nvs.core.metric_spec import SPECS
+from nvs.report.png import figure_png
 from nvs.sweep.paper_order import Ordering
 
 ROW_INCH = 0.32  # height per ordering
@@ -52,7 +52,4 @@ def per_model_png(title: str, decided: dict[str, list[Ordering]]) -> bytes | Non
     fig.legend(handles=handles, loc="center left", bbox_to_anchor=(0.81, 0.5), fontsize=6, frameon=False)
     fig.suptitle(f"{title}: per test group Δ of each ordering (error bars: ±1 s.e. over seeds)", fontsize=9)
     fig.subplots_adjust(left=0.33, right=0.8, top=1 - 0.45 / (sum(heights) + 0.8), bottom=0.5 / (sum(heights) + 0.8))
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90)
-    plt.close(fig)
-    return buf.getvalue()
+    return figure_png(fig, dpi=90)

@@ -1,7 +1,7 @@
 """The Hydra callback inside every job of a sweep: torch threads, the job's own stderr.log, failed.txt on a failure.
 
 Training jobs load it through ``+hydra.callbacks.nvs_sweep._target_=nvs.sweep.recorder.JobRecorder``, so it imports
-only the standard library, Hydra and nvs.atomic (torch only when it sets the thread count): never Lightning, the data
+only the standard library, Hydra and nvs.core.atomic (torch only when it sets the thread count): never Lightning, the data
 layer or pandas.
 """
 
@@ -14,7 +14,7 @@ from pathlib import Path
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
-from nvs.atomic import write_text
+from nvs.core.atomic import write_text
 
 # The files a job leaves for the runner besides its results: the error line of a failure, the job's stderr.
 FAILED = "failed.txt"

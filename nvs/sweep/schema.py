@@ -17,7 +17,7 @@ from typing import Any, Literal, Union
 
 import yaml
 
-from nvs.errors import UserError
+from nvs.core.errors import UserError
 
 Loc = tuple  # a key path: ("rows", 2, "paper", "l1")
 

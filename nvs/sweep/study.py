@@ -16,9 +16,9 @@ from typing import Any, Literal
 
 from omegaconf import OmegaConf
 
-from nvs.errors import UserError
-from nvs.metric_spec import METRICS
-from nvs.runs import REFERENCE_MODELS  # the one list of the models evaluated without training
+from nvs.core.errors import UserError
+from nvs.core.metric_spec import METRICS
+from nvs.models.reference import REFERENCE_MODELS  # the one list of the models evaluated without training
 
 REFERENCES = REFERENCE_MODELS
 from nvs.sweep.schema import Source, build

@@ -6,16 +6,16 @@ from __future__ import annotations
 import collections
 from pathlib import Path
 
-from nvs.atomic import write_bytes, write_text
-from nvs.metric_spec import IMAGE_METRICS, SPECS
-from nvs.provenance import git_sha, utc_now
+from nvs.core.atomic import write_bytes, write_text
+from nvs.core.metric_spec import IMAGE_METRICS, SPECS
+from nvs.core.provenance import git_sha, utc_now
 from nvs.sweep.collect import SKIP_LEVELS, collect, render_csv, summarize
 from nvs.sweep.convergence_report import convergence_tables, curves_png
-from nvs.sweep.jobs import Job
-from nvs.sweep.study import Study
 from nvs.sweep.goal_lines import against_base, goals, md_cell, test_sets_cell
+from nvs.sweep.jobs import Job
 from nvs.sweep.paper_order import decide, ordering_lines
 from nvs.sweep.per_model_plot import per_model_png
+from nvs.sweep.study import Study
 
 PICK_L1_TOLERANCE = 0.01
 PICK_COST = "eval_forward_ms_per_image"

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from nvs.errors import UserError
+from nvs.core.errors import UserError
 from nvs.sweep.bootstrap import PER_IMAGE, read_per_image
 
 
@@ -46,7 +46,7 @@ def local_test_set(fingerprint: dict) -> TestSet | None:
     """The test set this machine's data gives a job (its resolved config); None when the data cannot be read here
     (not rendered yet, or a config this check cannot build: the job itself then fails with its own error, which
     says more than this check could)."""
-    from nvs.build import build_data  # noqa: PLC0415 - the data stack only when a study launches
+    from nvs.run.build import build_data  # noqa: PLC0415 - the data stack only when a study launches
 
     try:
         return signature(build_data(OmegaConf.create(fingerprint)).test_pairs())

@@ -7,10 +7,10 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from nvs.compose import CONF_DIR
-from nvs.config_check import check_cli_overrides
-from nvs.errors import exits_cleanly
-from nvs.quiet import silence_known_noise
+from nvs.run.cli import exits_cleanly
+from nvs.run.compose import CONF_DIR
+from nvs.run.config_check import check_cli_overrides
+from nvs.run.quiet import silence_known_noise
 from nvs.viewer.build import build_session
 from nvs.viewer.server import build_app, check_address, serve
 

@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 from omegaconf import DictConfig
 
-from nvs.build import build_data
-from nvs.checkpoints import restore_module, restore_run_config
-from nvs.errors import UserError
+from nvs.core.errors import UserError
+from nvs.run.build import build_data
+from nvs.run.checkpoints import restore_module, restore_run_config
+from nvs.run.precision import choose
 from nvs.viewer.controls import build_controls
-from nvs.precision import choose
 from nvs.viewer.session import Source, ViewSession
 
 

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from nvs.errors import UserError
-from nvs.pointcloud import depth_to_points
+from nvs.core.errors import UserError
+from nvs.report.pointcloud import depth_to_points
 from nvs.viewer.controls import ObjectControls
 from nvs.viewer.session import ViewSession
 
@@ -21,8 +21,8 @@ def view_points(session: ViewSession, key: str, values: dict[str, float], max_de
                 keep_background: bool = False) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
     """-> xyz (N,3) float32, colours (N,3) uint8 and PLY header comments for source ``key`` at control ``values``.
 
-    Points are in the synthesised view's camera (``nvs.pointcloud``'s convention), coloured by the view. For an
-    object model the pixels it renders as the white background are left out unless ``keep_background``.
+    Points are in the synthesised view's camera (``nvs.report.pointcloud``'s convention), coloured by the view. For
+    an object model the pixels it renders as the white background are left out unless ``keep_background``.
     """
     view = session.view(key, values)
     if view.depth_values is None:

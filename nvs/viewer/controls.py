@@ -11,9 +11,9 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
+from nvs.core.errors import UserError
 from nvs.data import kitti, shapenet
 from nvs.data.datamodule import NVSDataModule
-from nvs.errors import UserError
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from PIL import Image, ImageOps, UnidentifiedImageError
 
-from nvs.errors import UserError
+from nvs.core.errors import UserError
 
 
 def decode_upload(data: bytes, size: int, name: str = "upload") -> torch.Tensor:

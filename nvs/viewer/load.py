@@ -23,10 +23,11 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from nvs.atomic import write_json
-from nvs.compose import CONF_DIR
-from nvs.errors import UserError, exits_cleanly
-from nvs.provenance import header
+from nvs.core.atomic import write_json
+from nvs.core.errors import UserError
+from nvs.core.provenance import header
+from nvs.run.cli import exits_cleanly
+from nvs.run.compose import CONF_DIR
 from nvs.viewer.process import ViewerProcess
 
 def _triangle(i: int, period: int) -> float:

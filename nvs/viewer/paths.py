@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from nvs.errors import UserError
+from nvs.core.errors import UserError
 from nvs.viewer.controls import Axis, ObjectControls, SceneControls, check_values
 
 Controls = ObjectControls | SceneControls

@@ -10,7 +10,7 @@ import sys
 import threading
 from pathlib import Path
 
-from nvs.errors import UserError
+from nvs.core.errors import UserError
 
 _URL = re.compile(r"viewer: (http://\S+)")
 

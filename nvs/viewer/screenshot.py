@@ -12,8 +12,9 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from nvs.compose import CONF_DIR
-from nvs.errors import UserError, exits_cleanly
+from nvs.core.errors import UserError
+from nvs.run.cli import exits_cleanly
+from nvs.run.compose import CONF_DIR
 from nvs.viewer.process import ViewerProcess
 
 CHROMIUM = Path("/usr/bin/chromium")

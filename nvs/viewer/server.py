@@ -25,8 +25,8 @@ from pathlib import Path
 import torch
 from aiohttp import web
 
-from nvs.errors import UserError
-from nvs.pointcloud import ply_bytes
+from nvs.core.errors import UserError
+from nvs.report.pointcloud import ply_bytes
 from nvs.viewer.cloud import file_stem, view_points
 from nvs.viewer.controls import describe
 from nvs.viewer.images import png_data_url, to_uint8

@@ -16,7 +16,8 @@ import numpy as np
 import torch
 import torch.nn as nn
 
-from nvs.errors import UserError
+from nvs.core.errors import UserError
+from nvs.core.protocols import EncodeOnce
 from nvs.viewer.controls import ObjectControls, SceneControls
 from nvs.viewer.images import decode_upload, depth_to_uint8, to_uint8
 
@@ -53,7 +54,7 @@ class ViewSession:
         K: (3,3) intrinsics at the model's size; pivot: (3,) latent pivot.
         controls: the data format's pose controls.
         gallery: the test-split sources offered on the page.
-        autocast: bf16 or None (float32); channels_last: the memory layout (both from nvs.precision.choose).
+        autocast: bf16 or None (float32); channels_last: the memory layout (both from nvs.run.precision.choose).
         cache_size: encoded sources (and uploads) kept.
     """
 
@@ -73,7 +74,7 @@ class ViewSession:
         self.uploads: OrderedDict[str, Source] = OrderedDict()
         self._encoded: OrderedDict[str, object] = OrderedDict()
         # Capability, not config: a network that can be split is split.
-        self.splits = callable(getattr(net, "encode", None)) and callable(getattr(net, "render", None))
+        self.splits = isinstance(net, EncodeOnce)
         self.encoder_runs = 0
 
     # -- sources ---------------------------------------------------------------------------------------------------

@@ -16,7 +16,7 @@ import numpy as np
 from PIL import Image
 from tqdm import tqdm
 
-from nvs.errors import UserError
+from nvs.core.errors import UserError
 from nvs.viewer.session import View, ViewSession
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from nvs.losses import LossTerm
+from nvs.losses.terms import LossTerm
 
 
 class DepthTV(LossTerm):

@@ -1,11 +1,11 @@
 """WarpRefine: predict the target depth, warp the source by it, refine the warped image. 7,604 parameters.
 
-A network of nvs's forward contract (nvs/types.py): ``forward(batch, needs) -> outputs`` with
+A network of nvs's forward contract (nvs/core/types.py): ``forward(batch, needs) -> outputs`` with
     rgb        (B,3,H,W) in [0,1]      the prediction
     rgb_scales [(B,3,H,W) in [-1,1]]   predictions coarse -> fine (one scale here: recon_final fits)
     depth      (B,1,H,W) > 0           the predicted target depth (depth metrics, the viewer, videos, point clouds)
 It reads only the batch keys of the data contract (src, K, T_tgt_src); ``needs`` names extras that some nvs losses
-request (nvs.types.Extras), which this network does not produce, so use losses that read rgb/rgb_scales/depth.
+request (nvs.core.types.Extras), which this network does not produce, so use losses that read rgb/rgb_scales/depth.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from __future__ import annotations
 import torch
 import torch.nn as nn
 
-from nvs.geometry import inverse_warp
+from nvs.core.geometry import inverse_warp
 
 
 def _block(c_in: int, c_out: int) -> nn.Sequential:

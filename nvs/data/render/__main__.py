@@ -14,7 +14,9 @@ import os
 import sys
 from pathlib import Path
 
-from nvs.errors import UserError, exits_cleanly
+from nvs.core.errors import UserError
+
+from nvs.run.cli import exits_cleanly
 
 _INT_KEYS = {"size", "seed", "max_models", "sequences", "frames", "supersample", "pairs_per_model", "models",
              "workers"}

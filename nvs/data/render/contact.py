@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from nvs.atomic import write_bytes
+from nvs.core.atomic import write_bytes
 
 SHEET_AZIMUTHS = (0, 40, 100, 160, 220, 300)
 

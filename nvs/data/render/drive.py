@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from nvs.atomic import write_json, write_text
+from nvs.core.atomic import write_json, write_text
 from nvs.data.render.assets import COPYRIGHT
 from nvs.data.render.depth_stats import DEPTH_BINS, depth_histogram
 from nvs.data.render.drive_plan import Planned, frame_id, pairs_all, pairs_sampled, plan_sequences, split_scenes

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from nvs.atomic import write_text
+from nvs.core.atomic import write_text
 from nvs.data.render.output import write_depth, write_png
 from nvs.data.render.scene import (Part, Renderer, bounds, contexts_opened, scaled_K, supersampled, to_pyrender,
                                    transform_parts)

@@ -11,7 +11,7 @@ import random
 import time
 from pathlib import Path
 
-from nvs.atomic import write_json, write_text
+from nvs.core.atomic import write_json, write_text
 from nvs.data.render.assets import COPYRIGHT, ModelSource, category_models
 # the per-model view geometry lives with the render job; re-exported for the dataset's readers and tests
 from nvs.data.render.object_jobs import (AZIMUTHS, CENTRE, ELEVATIONS, K256, Job, Result, Runner,  # noqa: F401

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from nvs.atomic import write_bytes
+from nvs.core.atomic import write_bytes
 
 
 def write_png(path: Path, rgb: np.ndarray) -> None:

@@ -194,9 +194,9 @@ def supersampled(renderer: Renderer, T_world_cam: np.ndarray, factor: int) -> tu
 
 
 def scaled_K(K256: np.ndarray, size: int) -> np.ndarray:
-    """K (3,3) at 256^2 -> K (3,3) at size^2 (nvs.geometry.scale_intrinsics: cx' = (cx+0.5)s-0.5)."""
+    """K (3,3) at 256^2 -> K (3,3) at size^2 (nvs.core.geometry.scale_intrinsics: cx' = (cx+0.5)s-0.5)."""
     import torch
 
-    from nvs.geometry import scale_intrinsics
+    from nvs.core.geometry import scale_intrinsics
 
     return scale_intrinsics(torch.tensor(K256, dtype=torch.float64), size / 256.0).numpy()

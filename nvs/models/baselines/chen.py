@@ -7,9 +7,9 @@ from collections.abc import Callable
 import torch
 import torch.nn as nn
 
-from nvs.geometry import BORDER_TOLERANCE, about_pivot, project_to_source, sample_at
-from nvs.models.baselines import BaselineOutputs
-from nvs.types import Batch, Extras, Outputs, to_model_range
+from nvs.core.geometry import BORDER_TOLERANCE, about_pivot, project_to_source, sample_at
+from nvs.core.types import Batch, Extras, Outputs, to_model_range
+from nvs.models.baselines.common import BaselineOutputs
 
 LATENT_ROTATIONS = ("code", "exact")
 

@@ -6,8 +6,9 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from nvs.models.baselines import POSE_DIM, BaselineOutputs, pose_code
-from nvs.types import RGB_BRANCHES, Batch, Outputs, to_image_range, to_model_range
+from nvs.core.types import RGB_BRANCHES, Batch, Outputs, to_image_range, to_model_range
+from nvs.core.weight_init import xavier_convs
+from nvs.models.baselines.common import POSE_DIM, BaselineOutputs, pose_code
 
 # Decoder widths of Sun et al.'s joint decoder, stage by stage from the bottleneck up (its output layers use half
 # of the last one).
@@ -167,7 +168,7 @@ class Sun(nn.Module):
     6-vector pose difference); images are [-1,1] without their inversion of object images (a sign their first and
     last layers absorb); any size divisible by 2^n_layers; one optimiser with two parameter groups (``param_groups``)
 instead of their two Adams. The adversarial term on the pixel module is the
-    ``adversarial`` loss term (``nvs.losses_adversarial``).
+    ``adversarial`` loss term (``nvs.losses.adversarial``).
 
     forward(batch, needs) -> ``rgb`` (B,3,S,S) in [0,1], ``rgb_scales`` [(B,3,S,S) in [-1,1]], ``rgb_branches``
     {"flow", "pixel": (B,3,S,S) in [0,1]}, ``confidence`` (B,2,S,S) softmax weights (flow, pixel).
@@ -195,11 +196,7 @@ instead of their two Adams. The adversarial term on the pixel module is the
         chans = self.flow_encoder.channels
         self.flow_decoder = SunDecoder(chans, 3, n_res=n_res_flow, skips=False)  # flow (x, y) + confidence
         self.pixel_decoder = SunDecoder(chans, 4, n_res=n_res_pixel, skips=True)  # RGB + confidence
-        # TF-slim's default initialiser.
-        for m in self.modules():
-            if isinstance(m, nn.Conv2d):
-                nn.init.xavier_uniform_(m.weight)
-                nn.init.zeros_(m.bias)
+        xavier_convs(self)  # TF-slim's default initialiser
 
     def param_groups(self) -> list[dict]:
         """Optimiser groups: the flow module at the optimiser's settings, the pixel module at ``pixel_lr_scale`` times

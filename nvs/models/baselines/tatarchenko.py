@@ -5,9 +5,9 @@ from __future__ import annotations
 import torch
 import torch.nn as nn
 
-from nvs.models.baselines import POSE_DIM, BaselineOutputs, halvings, pose_code
+from nvs.core.types import Batch, Outputs, to_image_range, to_model_range
+from nvs.models.baselines.common import POSE_DIM, BaselineOutputs, halvings, pose_code
 from nvs.models.blocks import act, down, up_transposed
-from nvs.types import Batch, Outputs, to_image_range, to_model_range
 
 
 class Tatarchenko(nn.Module):

@@ -1,0 +1,107 @@
+"""Artifacts every run leaves (metrics.json and the per-image CSV, written atomically), and its output folder:
+checked writable at start, removed when the run fails before its first step."""
+
+from __future__ import annotations
+
+import io
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import pandas as pd
+
+from nvs.core.atomic import write_json, write_text
+from nvs.core.errors import UserError
+
+
+def write_per_image(path: str | Path, rows: list[dict]) -> None:
+    buf = io.StringIO()
+    pd.DataFrame(rows).to_csv(buf, index=False, float_format="%.6g")
+    write_text(path, buf.getvalue())
+
+
+def write_metrics(path: str | Path, payload: dict) -> None:
+    write_json(path, payload)
+
+
+def summary_line(test: dict) -> str:
+    """One printed line of the mean test metrics."""
+    return "test: " + ", ".join(f"{k}={v:.4f}" for k, v in test.items() if isinstance(v, float))
+
+
+def is_global_zero() -> bool:
+    """Rank 0 of a distributed run (or a plain run): the one process that writes and removes run files."""
+    from lightning.pytorch.utilities.rank_zero import rank_zero_only
+
+    return getattr(rank_zero_only, "rank", 0) == 0
+
+
+def check_writable(directory: str | Path) -> None:
+    """Create ``directory`` if needed and write a probe file in it; UserError (one line) if the system refuses."""
+    directory = Path(directory)
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".write-probe.", dir=directory)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as err:
+        why = "a file is in the way" if _blocker(directory) else (err.strerror or str(err))
+        raise UserError(f"{directory}: output location is not writable ({why}); choose another "
+                        "(hydra.run.dir=..., paths.log_dir=...)") from None
+
+
+def _blocker(directory: Path) -> Path | None:
+    """The file (not folder) at ``directory`` or at one of its parents, if any."""
+    for p in (directory, *directory.parents):
+        if p.exists():
+            return None if p.is_dir() else p
+    return None
+
+
+def check_creatable(directory: str | Path) -> None:
+    """UserError if ``directory`` cannot be created: a file in the way, or its nearest existing parent is not
+    writable. Creates nothing (for the run directory, before Hydra makes it)."""
+    directory = Path(directory).absolute()
+    blocker = _blocker(directory)
+    parent = next((p for p in (directory, *directory.parents) if p.exists()), None)
+    if blocker is not None or (parent is not None and not os.access(parent, os.W_OK | os.X_OK)):
+        why = f"{blocker} is a file" if blocker is not None else f"{parent} is not writable"
+        raise UserError(f"{directory}: cannot create the run directory ({why}); choose another "
+                        "(hydra.run.dir=..., paths.log_dir=...)")
+
+
+def run_dir_of(argv: list[str], task: str) -> Path:
+    """The folder Hydra will create for ``argv`` (its parent for the default, time-stamped one)."""
+    multirun = any(a in ("-m", "--multirun") for a in argv)
+    key = "hydra.sweep.dir=" if multirun else "hydra.run.dir="
+    values = {a.split("=", 1)[0].lstrip("+"): a.split("=", 1)[1].strip("'\"") for a in argv if "=" in a}
+    if key[:-1] in values and "${" not in values[key[:-1]]:
+        return Path(values[key[:-1]])
+    if "paths.log_dir" in values and "${" not in values["paths.log_dir"]:
+        return Path(values["paths.log_dir"]) / task
+    root = values.get("paths.root_dir") or os.environ.get("NVS_ROOT") or "."
+    return Path(root) / "runs" / task
+
+
+# What a run writes before its first step: Hydra's config copy and log, the CSV logger, the checkpoint folder.
+_UNSTARTED = (".hydra", "csv", "checkpoints")
+
+
+def remove_unstarted_run(out_dir: str | Path, job_name: str) -> bool:
+    """Remove what a run that failed before its first step wrote into ``out_dir``, then the folder if that empties
+    it. A folder holding a checkpoint or a metrics.json (a run to resume, or finished) is left alone, and so is
+    anything the run did not write. Returns whether the folder is gone."""
+    out_dir = Path(out_dir)
+    if not out_dir.is_dir() or (out_dir / "metrics.json").exists() or any(out_dir.glob("checkpoints/*.ckpt")):
+        return False
+    for name in _UNSTARTED:
+        path = out_dir / name
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)
+    (out_dir / f"{job_name}.log").unlink(missing_ok=True)
+    try:
+        out_dir.rmdir()
+    except OSError:
+        return False
+    return True

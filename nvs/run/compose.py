@@ -1,0 +1,52 @@
+"""The project's config directory and the one way a tool composes a config outside a Hydra run."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from omegaconf import DictConfig
+
+import nvs
+
+# nvs/conf: in a checkout a link to the top-level conf/, in an installed package the copy its wheel ships (found from
+# the package, wherever this module sits in it); resolved so that a checkout's CONF_DIR.parent is the repository.
+CONF_DIR = (Path(nvs.__file__).resolve().parent / "conf").resolve()
+
+
+def compose_raw(config_name: str, overrides: list[str] | tuple[str, ...] = ()) -> DictConfig:
+    """As :func:`compose`, but Hydra's own exception propagates (for callers that word the error themselves)."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    outer = GlobalHydra.instance().is_initialized()
+    if outer:
+        saved = GlobalHydra.instance().hydra
+        GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            return hydra_compose(config_name=config_name, overrides=[str(o) for o in overrides])
+    finally:
+        if outer:
+            GlobalHydra.instance().clear()
+            GlobalHydra.instance().initialize(saved)
+
+
+def compose(config_name: str, overrides: list[str] | tuple[str, ...] = (), resolve: bool = False) -> DictConfig:
+    """``conf/<config_name>.yaml`` with ``overrides`` as Hydra composes it (the hydra node excluded).
+
+    Works inside another Hydra app (a ``@hydra.main`` tool, a test): the outer global state is saved and restored.
+    A composition error is one ``UserError`` naming the overrides.
+    """
+    from omegaconf import OmegaConf
+
+    from nvs.core.errors import UserError
+
+    try:
+        cfg = compose_raw(config_name, overrides)
+    except Exception as err:  # noqa: BLE001 - a composition error is a problem in the caller's overrides
+        raise UserError(f"conf/{config_name}.yaml with overrides {[str(o) for o in overrides]} does not compose: "
+                        f"{str(err).splitlines()[0]}") from None
+    if resolve:
+        OmegaConf.resolve(cfg)
+    return cfg

@@ -1,0 +1,130 @@
+"""The callbacks every training run carries (not configurable): its throughput and its stop on SIGINT/SIGTERM."""
+
+from __future__ import annotations
+
+import collections
+import signal
+import statistics
+import time
+from pathlib import Path
+
+import lightning as L
+import torch
+from lightning.pytorch.utilities.exceptions import SIGTERMException
+
+from nvs.core.errors import Interrupted
+
+
+class Throughput(L.Callback):
+    """Wall time and samples/s of the fit (validation excluded from samples, included in wall time), and the median
+    time of one training step (forward, backward, optimizer; data loading and validation excluded).
+
+    Its state travels in checkpoints, so a resumed run reports the time and samples of all its segments.
+    """
+
+    WARMUP_STEPS = 5  # first steps of each process segment left out of the step-time median (allocation, caches)
+    KEPT_STEPS = 2000  # the median is over the most recent steps
+
+    def __init__(self):
+        self.samples, self.start, self.prior_s, self.train_s = 0, None, 0.0, 0.0
+        self.step_s: collections.deque[float] = collections.deque(maxlen=self.KEPT_STEPS)
+        self._step_start, self.segment_steps = None, 0
+
+    def on_train_start(self, trainer, pl_module):
+        self.start = time.perf_counter()
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        self._step_start = time.perf_counter()
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        self.samples += batch["src"].shape[0]
+        self.segment_steps += 1
+        if self._step_start is not None and self.segment_steps > self.WARMUP_STEPS:
+            self.step_s.append(time.perf_counter() - self._step_start)
+
+    def on_train_end(self, trainer, pl_module):
+        self.train_s = self.prior_s + time.perf_counter() - self.start
+
+    def step_ms(self) -> float | None:
+        """Median training-step time in ms (None before any step past the warm-up)."""
+        return 1000 * statistics.median(self.step_s) if self.step_s else None
+
+    def state_dict(self):
+        elapsed = time.perf_counter() - self.start if self.start is not None else 0.0
+        return {"train_s": self.prior_s + elapsed, "samples": self.samples, "step_s": list(self.step_s)}
+
+    def load_state_dict(self, state_dict):
+        self.prior_s, self.samples = float(state_dict["train_s"]), int(state_dict["samples"])
+        self.step_s.extend(state_dict.get("step_s", []))
+
+
+class Interruption(L.Callback):
+    """SIGINT / SIGTERM: save ``last.ckpt`` and stop with :class:`Interrupted` (one line: where, how to resume).
+
+    During training the signal is acted on at the end of the current step (or at once inside validation, where
+    Lightning itself stops on SIGTERM); outside training it interrupts at once.
+    """
+
+    def __init__(self, last: Path, resume: str):
+        self.last, self.resume = last, resume
+        self.signum: int | None = None
+        self.fitting = False
+        self._previous: dict[int, object] = {}
+
+    def install(self) -> None:
+        for s in (signal.SIGINT, signal.SIGTERM):
+            self._previous[s] = signal.signal(s, self._handler)
+
+    def restore(self) -> None:
+        for s, handler in self._previous.items():
+            signal.signal(s, handler)
+        self._previous = {}
+
+    def _handler(self, signum, frame) -> None:
+        first = self.signum is None
+        self.signum = signum
+        if not self.fitting or not first:  # outside a step (or a second Ctrl-C): at once
+            raise Interrupted(signum, self.message(saved=self.last.is_file(), step=None))
+
+    def message(self, saved: bool, step: int | None) -> str:
+        name = signal.Signals(self.signum).name
+        at = f" at step {step}" if step is not None else ""
+        if not saved:
+            return f"interrupted by {name}{at} before any checkpoint was written: nothing to resume"
+        return f"interrupted by {name}{at}: saved {self.last}; resume with: {self.resume}"
+
+    def _stop(self, trainer) -> None:
+        self.fitting = False
+        saved = self._save(trainer)
+        raise Interrupted(self.signum, self.message(saved, trainer.global_step))
+
+    def _save(self, trainer) -> bool:
+        if trainer.global_step == 0:
+            return self.last.is_file()
+        if not self.last.is_file() or torch.load(self.last, map_location="cpu", weights_only=False,
+                                                 mmap=True).get("global_step") != trainer.global_step:
+            for cb in trainer.checkpoint_callbacks:  # the resumed callback then writes last.ckpt, not last-v1.ckpt
+                if Path(cb.dirpath or "") == self.last.parent:
+                    cb.last_model_path = str(self.last)
+            trainer.save_checkpoint(self.last, weights_only=False)
+        return True
+
+    def on_train_start(self, trainer, pl_module):
+        self.fitting = True
+        if self.signum is not None:
+            self._stop(trainer)
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
+        if self.signum is not None:
+            self._stop(trainer)
+
+    def on_train_end(self, trainer, pl_module):
+        if self.signum is not None:
+            self._stop(trainer)
+        self.fitting = False
+
+    def on_exception(self, trainer, pl_module, exception):
+        # Lightning stops on SIGTERM inside validation with its own SIGTERMException: the weights are still here.
+        if isinstance(exception, SIGTERMException) and self.signum is not None and self.fitting:
+            self.fitting = False
+            self._save(trainer)
