@@ -92,7 +92,14 @@ def _read(path: Path) -> dict[str, torch.Tensor]:
     try:
         sd = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # noqa: BLE001 - any unpickling failure is a bad file for the user
-        raise UserError(f"{path}: not a readable state_dict ({err.__class__.__name__}: {err})") from None
+        # torch's message spans several lines (with terminal colour codes): keep what names the cause.
+        text = re.sub(r"\x1b\[[0-9;]*m", "", str(err))
+        pickled = re.search(r"Unsupported global: GLOBAL ([\w.]+)", text)
+        if pickled:
+            raise UserError(f"{path}: not a plain state_dict: it pickles the Python object {pickled[1]} (a whole "
+                            "network?); save net.state_dict() instead") from None
+        first = next((ln.strip() for ln in text.splitlines() if ln.strip()), "")
+        raise UserError(f"{path}: not a readable state_dict ({err.__class__.__name__}: {first})") from None
     if not isinstance(sd, dict) or not all(isinstance(v, torch.Tensor) for v in sd.values()):
         raise UserError(f"{path}: not a plain state_dict of tensors")
     return sd
@@ -121,9 +128,12 @@ def convert(paths: list[str], data: str = "chairs", epoch: str | None = None, ou
             overrides: tuple[str, ...] = ()) -> Path:
     """Write the nvs checkpoint; returns its path (default: beside the inputs, ``<epoch>_nvs.ckpt``)."""
     from nvs.core.atomic import write_bytes
+    from nvs.core.weights_digest import stamp
     from nvs.run.build import build_module
     from nvs.run.compose import compose
 
+    if out:  # before minutes of building and converting: the output must have somewhere to go
+        _check_out(Path(out))
     files = find_files(paths, epoch)
     epoch = files["enc"].name.split("_net_")[0]
     cfg = compose("train", [f"data={data}", "model=nvs", "fidelity=code", f"data.size={SIZE}", "paths.output_dir=.",
@@ -137,10 +147,22 @@ def convert(paths: list[str], data: str = "chairs", epoch: str | None = None, ou
     dest = Path(out) if out else files["enc"].parent / f"{epoch}_nvs.ckpt"
     ckpt = {"state_dict": weights, "nvs_config": module.run_config,
             "converted_from": {n: str(files[n]) for n in NETWORKS}, "epoch": 0, "global_step": 0}
+    stamp(ckpt)  # checked on every load, like a checkpoint nvs trained
     buf = io.BytesIO()
     torch.save(ckpt, buf)
-    write_bytes(dest, buf.getvalue())
+    try:
+        write_bytes(dest, buf.getvalue())
+    except OSError as err:
+        raise UserError(f"--out {dest}: cannot write ({err.strerror or err})") from None
     return dest
+
+
+def _check_out(out: Path) -> None:
+    """``--out`` names a file in an existing folder (no folder is created for it)."""
+    if out.is_dir():
+        raise UserError(f"--out {out}: is a directory; give the checkpoint's file name (e.g. {out / 'nvs.ckpt'})")
+    if not out.parent.is_dir():
+        raise UserError(f"--out {out}: the folder {out.parent} does not exist (create it first)")
 
 
 @exits_cleanly

@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 from nvs.core.metric_spec import IMAGE_METRICS, SPECS
+from nvs.run.config_check import hydra_value
 
 
 
@@ -77,11 +78,14 @@ def _demo(size: int, experiment: str) -> None:
     runs = root() / "runs" / "demo"
     stamp = time.strftime("%Y-%m-%d_%H-%M-%S")
     run_dir = runs / stamp
-    _run([sys.executable, "-m", "nvs.train", f"experiment={experiment}", f"data.root={data}",
-          f"hydra.run.dir={run_dir}", f"trainer.max_steps={steps}", f"trainer.val_check_interval={steps // 2}"])
+    # Hydra-quoted: a checkout under a path with spaces or non-ASCII letters still parses
+    _run([sys.executable, "-m", "nvs.train", f"experiment={experiment}", f"data.root={hydra_value(str(data))}",
+          f"hydra.run.dir={hydra_value(str(run_dir))}", f"trainer.max_steps={steps}",
+          f"trainer.val_check_interval={steps // 2}"])
     copy_dir = run_dir / "copy_source"
-    _run([sys.executable, "-m", "nvs.evaluate", "model=copy_source", "data=chairs", f"data.root={data}",
-          f"data.size={size}", f"out_dir={copy_dir}", f"hydra.run.dir={copy_dir}"])
+    _run([sys.executable, "-m", "nvs.evaluate", "model=copy_source", "data=chairs",
+          f"data.root={hydra_value(str(data))}", f"data.size={size}", f"out_dir={hydra_value(str(copy_dir))}",
+          f"hydra.run.dir={hydra_value(str(copy_dir))}"])
     ours = json.loads((run_dir / "metrics.json").read_text())
     copy = json.loads((copy_dir / "metrics.json").read_text())
     print()

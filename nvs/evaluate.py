@@ -29,7 +29,14 @@ from nvs.run.compose import CONF_DIR
 
 
 def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
+    limit = cfg.get("limit")
+    if limit is not None and (isinstance(limit, bool) or not isinstance(limit, int) or limit < 1):
+        raise UserError(f"limit={limit}: expected a positive number of test pairs (limit=null: all of them)")
     run, ckpt = restore_run_config(cfg)
+    asked = _size_override()
+    if ckpt is not None and asked is not None and asked != str(run.data.size):
+        raise UserError(f"data.size={asked}: {cfg.ckpt_path} was trained at {run.data.size}x{run.data.size} and is "
+                        "evaluated at that size; drop data.size")
     L.seed_everything(int(run.seed), workers=True)
     datamodule = build_data(run)
     datamodule.validate(("test",))
@@ -71,6 +78,44 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
     return result
 
 
+def _size_override() -> str | None:
+    """The value of a ``data.size=`` / ``+data.size=`` given on the command line (None: not given)."""
+    if not HydraConfig.initialized():
+        return None
+    for line in HydraConfig.get().overrides.task:
+        key, _, value = line.partition("=")
+        if key.lstrip("+") == "data.size":
+            return value
+    return None
+
+
+def check_composes(argv: list[str]) -> None:
+    """The overrides compose with conf/evaluate.yaml, or one UserError (instead of Hydra's lines and exit 1)."""
+    if any(a.startswith("-") for a in argv):  # Hydra's own flags and multiruns: Hydra's business
+        return
+    from hydra.errors import HydraException
+
+    from nvs.run.compose import compose_raw
+    from nvs.run.finished import REFERENCE_MODELS
+
+    try:
+        compose_raw("evaluate", argv)
+    except HydraException as err:
+        given = dict(a.lstrip("+").split("=", 1) for a in argv if "=" in a)
+        text = str(err).split("Config search path")[0]
+        if "'data.size'" in text:
+            raise UserError(f"data.size={given.get('data.size')}: "
+                            + ("a checkpoint is evaluated at the size it was trained at; drop data.size"
+                               if given.get("ckpt_path") else "choose a dataset first (data=<name> data.size=...)")
+                            ) from None
+        if text.startswith("In 'model/") and given.get("model") not in REFERENCE_MODELS:
+            raise UserError(f"model={given.get('model')}: nvs.evaluate builds only the reference models from model= "
+                            f"({'|'.join(REFERENCE_MODELS)}); a trained model comes from its checkpoint "
+                            "(ckpt_path=...)") from None
+        lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+        raise UserError(" ".join(lines[:4]) or err.__class__.__name__) from None
+
+
 def evaluation_precision(cfg: DictConfig, run: DictConfig) -> Choice:
     """``precision=auto``: measured on this machine; null: the run's own (precision and layout); else as given.
     A reference model (no checkpoint) always runs its own (32-true)."""
@@ -109,6 +154,7 @@ def main_cli() -> None:
 
     try:
         check_creatable(run_dir_of(sys.argv[1:], "evaluate"))  # Hydra creates it before main(), with a traceback
+        check_composes(sys.argv[1:])
     except UserError as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(2)

@@ -11,11 +11,12 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from nvs.core.errors import UserError
-from nvs.run.artifacts import check_creatable, is_global_zero, remove_unstarted_run, run_dir_of, summary_line
 from nvs.run.cli import exits_cleanly
 from nvs.run.compose import CONF_DIR
 from nvs.run.config_check import check_cli_overrides, trainer_arguments
 from nvs.run.training import job_name, run
+from nvs.run.artifacts import (check_creatable, existing_files, is_global_zero, remove_unstarted_run, run_dir_of,
+                               summary_line)
 
 
 def main_cli() -> None:
@@ -61,14 +62,15 @@ def main(cfg: DictConfig) -> None:
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     # A run that ends before its first step leaves no directory behind (a multirun job's stays: it is reported).
     keep = HydraConfig.get().mode != RunMode.RUN
+    existing = existing_files(out_dir)  # the user's files there (and Hydra's, written before main): never removed
     try:
         check_cli_overrides("train", HydraConfig.get().overrides.task)
         OmegaConf.resolve(cfg)
     except BaseException:
         if not keep and is_global_zero():
-            remove_unstarted_run(out_dir, job_name())
+            remove_unstarted_run(out_dir, job_name(), existing)
         raise
-    result = run(cfg, out_dir, keep_unstarted=keep)
+    result = run(cfg, out_dir, keep_unstarted=keep, existing=existing)
     if not is_global_zero():
         return
     test = result.get("test", {})

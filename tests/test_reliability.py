@@ -223,11 +223,11 @@ def test_nonfinite_loss_is_one_line_naming_the_real_key(tmp_path):
 
 
 def test_a_checkpoint_with_flipped_bytes_is_one_clear_error(tmp_path):
-    from nvs.run.training import _complete
+    from nvs.run.checkpoint_files import check_complete
 
     path = tmp_path / "last.ckpt"
     torch.save({"state_dict": {"w": torch.arange(5000.0)}, "global_step": 2}, path)
-    assert _complete(path) == str(path)
+    check_complete(path)
     with zipfile.ZipFile(path) as zf:
         info = next(i for i in zf.infolist() if i.filename.endswith("data.pkl"))
     data = bytearray(path.read_bytes())
@@ -237,7 +237,7 @@ def test_a_checkpoint_with_flipped_bytes_is_one_clear_error(tmp_path):
     path.write_bytes(bytes(data))
     assert zipfile.is_zipfile(path)  # the zip itself is intact
     with pytest.raises(UserError, match=r"last.ckpt: corrupt checkpoint \(member .*data.pkl fails its checksum\)"):
-        _complete(path)
+        check_complete(path)
 
 
 # -- the trainer group takes every Lightning Trainer argument ------------------------------------------------------

@@ -388,7 +388,7 @@ def test_last_error_line():
     assert sweep.last_error_line("warn\nerror: data root missing\n") == "error: data root missing"
     assert sweep.last_error_line("just text\n") == "just text"
     assert sweep.last_error_line("just text\n", fallback=False) == ""
-    assert sweep.last_error_line("x\nnvs.module.NonFiniteLossError: nan\n") == "nvs.module.lightning_module.NonFiniteLossError: nan"
+    assert sweep.last_error_line("x\nnvs.module.lightning_module.NonFiniteLossError: nan\n") == "nvs.module.lightning_module.NonFiniteLossError: nan"
     assert sweep.last_error_line("UserWarning: careful\n", fallback=False) == ""
 
 

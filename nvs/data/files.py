@@ -46,8 +46,21 @@ def read_image(path: str | Path, size: int) -> torch.Tensor:
     return torch.from_numpy(arr.copy()).permute(2, 0, 1).contiguous()
 
 
+def _dtype_problem(arr: np.ndarray) -> str | None:
+    # An integer depth map is almost always a sensor's or renderer's millimetres (uint16): read as metres, every
+    # depth metric would be 1000x off, so it is refused rather than guessed.
+    if not np.issubdtype(arr.dtype, np.floating):
+        return (f"depth is {arr.dtype}, expected float metres (an integer depth map is usually millimetres: "
+                "save depth_mm / 1000.0 as float32)")
+    return None
+
+
 def read_depth(path: str | Path, size: int) -> torch.Tensor:
-    """``.npy`` float depth in metres (0 = no data) -> (1,size,size) float32; resized by nearest-neighbour pooling."""
+    """``.npy`` float depth in metres (0 = no data) -> (1,size,size) float32; resized by nearest-neighbour pooling.
+
+    The one mask rule is 0 = no data: NaN, +-inf and negative depths are refused (DataError naming the file), not
+    silently masked, because they usually mean a broken export rather than a deliberate hole.
+    """
     path = Path(path)
     try:
         arr = np.load(path, allow_pickle=False)
@@ -55,8 +68,16 @@ def read_depth(path: str | Path, size: int) -> torch.Tensor:
         raise DataError(path, f"cannot read depth ({err.__class__.__name__}: {err})") from None
     if arr.ndim != 2 or arr.shape[0] != arr.shape[1]:
         raise DataError(path, f"depth must be a square 2-D array, got shape {arr.shape}")
+    problem = _dtype_problem(arr)
+    if problem:
+        raise DataError(path, problem)
     d = torch.from_numpy(np.asarray(arr, dtype=np.float32))
-    d = torch.where(torch.isfinite(d) & (d > 0), d, torch.zeros_like(d))
+    bad = ~torch.isfinite(d) | (d < 0)
+    if bad.any():
+        masks = (("NaN", torch.isnan(d)), ("inf", torch.isinf(d)), ("negative", torch.isfinite(d) & (d < 0)))
+        kinds = [k for k, m in masks if m.any()]
+        raise DataError(path, f"{int(bad.sum())} depth value(s) are {'/'.join(kinds)}; depth must be finite metres "
+                        ">= 0 (0 = no data): write 0 where there is no depth")
     n = d.shape[0]
     if n != size:
         if n % size:
@@ -73,7 +94,8 @@ def read_lines(path: str | Path) -> list[tuple[int, str]]:
     if not path.is_file():
         raise DataError(path, "file is missing")
     try:
-        text = path.read_text()
+        # utf-8-sig: a byte-order mark (Windows editors write one) is not part of the first id
+        text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as err:
         raise DataError(path, f"cannot read ({err})") from None
     out = []
@@ -158,6 +180,8 @@ def depth_problem(path: Path, size: int) -> str | None:
         return f"cannot read depth ({err.__class__.__name__}: {err})"
     if arr.ndim != 2 or arr.shape[0] != arr.shape[1]:
         return f"depth must be a square 2-D array, got shape {arr.shape}"
+    if _dtype_problem(arr):
+        return _dtype_problem(arr)
     if arr.shape[0] != size and arr.shape[0] % size:
         return f"depth is {arr.shape[0]}x{arr.shape[0]}, not an integer multiple of the image size {size}"
     return None

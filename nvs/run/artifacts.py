@@ -88,17 +88,39 @@ def run_dir_of(argv: list[str], task: str) -> Path:
 _UNSTARTED = (".hydra", "csv", "checkpoints")
 
 
-def remove_unstarted_run(out_dir: str | Path, job_name: str) -> bool:
+def existing_files(out_dir: str | Path) -> frozenset[str]:
+    """Every file and folder under ``out_dir`` (relative POSIX paths): what a failed run must leave in place."""
+    out_dir = Path(out_dir)
+    if not out_dir.is_dir():
+        return frozenset()
+    return frozenset(p.relative_to(out_dir).as_posix() for p in out_dir.rglob("*"))
+
+
+def remove_unstarted_run(out_dir: str | Path, job_name: str, existing: frozenset[str] = frozenset()) -> bool:
     """Remove what a run that failed before its first step wrote into ``out_dir``, then the folder if that empties
     it. A folder holding a checkpoint or a metrics.json (a run to resume, or finished) is left alone, and so is
-    anything the run did not write. Returns whether the folder is gone."""
+    anything the run did not write: every path in ``existing`` (what was there before it started) and everything
+    outside the run's own folders. Hydra's ``.hydra/`` and job log are the run's. Returns whether the folder is gone."""
     out_dir = Path(out_dir)
     if not out_dir.is_dir() or (out_dir / "metrics.json").exists() or any(out_dir.glob("checkpoints/*.ckpt")):
         return False
     for name in _UNSTARTED:
         path = out_dir / name
-        if path.is_dir() and not path.is_symlink():
+        if not path.is_dir() or path.is_symlink():
+            continue
+        if name == ".hydra":
             shutil.rmtree(path, ignore_errors=True)
+            continue
+        for p in sorted(path.rglob("*"), key=lambda q: len(q.parts), reverse=True) + [path]:  # deepest first
+            if p.relative_to(out_dir).as_posix() in existing:
+                continue
+            try:
+                if p.is_dir() and not p.is_symlink():
+                    p.rmdir()
+                else:
+                    p.unlink()
+            except OSError:  # a folder still holding what was there before
+                pass
     (out_dir / f"{job_name}.log").unlink(missing_ok=True)
     try:
         out_dir.rmdir()

@@ -4,13 +4,18 @@ Writing (atomically, failing loudly, ``last`` sharing ``best``'s storage):
 - :class:`AtomicCheckpointIO` (a Lightning CheckpointIO plugin, set by ``nvs.train``): ``torch.save`` to memory,
   then :func:`nvs.core.atomic.write_bytes` (temp file, fsync, rename). Lightning's own save ignores a PermissionError
   (the run then trains to the end and finds no checkpoint); here any OSError stops training with one line.
-- :class:`ModelCheckpoint` (conf/callbacks/default.yaml): ``last.ckpt`` written at the same step as the best
-  checkpoint is a hard link to it (one copy on disk, ~120 MB saved per run). A later write of either file replaces
-  it by rename, so the other keeps its bytes; a deleted old best leaves ``last`` intact.
+- :class:`ModelCheckpoint` (conf/callbacks/default.yaml): ``last.ckpt`` every ``last_every_n_steps`` training
+  steps, after every validation and at the end of training; written at the same step as the best checkpoint it is a
+  hard link to it (one copy on disk, ~120 MB saved per run). A later write of either file replaces it by rename, so
+  the other keeps its bytes; a deleted old best leaves ``last`` intact. Every checkpoint carries a content hash of
+  its weights (:mod:`nvs.core.weights_digest`, stamped by the module).
 
-Reading (``nvs.evaluate``, the viewer, ``nvs.figures``): :func:`restore_run_config` gives the run's own config (with
-data from the command line when given) and the checkpoint; :func:`restore_module` rebuilds its module with the
-weights, every missing, unexpected or misshapen weight being one clear error.
+Reading: :func:`nvs.run.checkpoint_files.read_checkpoint` is the one way a checkpoint file is opened (zip directory,
+every member's CRC, the weights' content hash); resume (``resume_checkpoint``: the newest checkpoint by its recorded
+step), the test after training, ``nvs.evaluate``, the viewer and ``nvs.figures`` go through it.
+:func:`restore_run_config` gives the run's own config (with data from the command line when given) and the
+checkpoint; :func:`restore_module` rebuilds its module with the weights, every missing, unexpected or misshapen
+weight being one clear error.
 """
 
 from __future__ import annotations
@@ -31,6 +36,7 @@ from nvs.core.legacy import upgrade_targets
 from nvs.models.reference import REFERENCE_MODELS
 from nvs.module.lightning_module import NVSModule
 from nvs.run.build import build_module
+from nvs.run.checkpoint_files import read_checkpoint
 from nvs.run.config_check import model_mismatch
 
 
@@ -63,9 +69,23 @@ def link_or_copy(src: str | Path, dst: str | Path) -> None:
 
 
 class ModelCheckpoint(_LightningModelCheckpoint):
-    """Lightning's ModelCheckpoint; ``last`` at the step of the best checkpoint is a hard link to it."""
+    """Lightning's ModelCheckpoint, and: ``last.ckpt`` every ``last_every_n_steps`` training steps (None: only at
+    validations), after every validation and at the end of training, not only with a new best; at the best's step a
+    hard link to it. A run resumed in a moved directory keeps its best and last (no ``last-v1.ckpt``)."""
+
+    def __init__(self, *args, last_every_n_steps: int | None = None, **kwargs):
+        super().__init__(*args, **kwargs)
+        if last_every_n_steps is not None and (not isinstance(last_every_n_steps, int) or last_every_n_steps < 1):
+            raise UserError(f"callbacks.model_checkpoint.last_every_n_steps={last_every_n_steps}: expected a positive "
+                            "integer or null")
+        self.last_every_n_steps = last_every_n_steps
+        self._last_step: int | None = None  # the step last.ckpt holds (written by this process)
+        self._last_writes = 0
 
     def _save_checkpoint(self, trainer, filepath: str) -> None:
+        # The rows logged so far reach the disk before the checkpoint: a kill after it loses no part of the curve.
+        for logger in trainer.loggers:
+            logger.save()
         same_step = self._last_global_step_saved == trainer.global_step and self._last_checkpoint_saved
         last = Path(filepath).name.startswith(self.CHECKPOINT_NAME_LAST)
         if not (same_step and last and Path(self._last_checkpoint_saved).is_file()):
@@ -80,17 +100,79 @@ class ModelCheckpoint(_LightningModelCheckpoint):
         self._last_global_step_saved = trainer.global_step
         self._last_checkpoint_saved = filepath
 
+    def _save_last_checkpoint(self, trainer, monitor_candidates) -> None:
+        super()._save_last_checkpoint(trainer, monitor_candidates)
+        self._last_step = trainer.global_step
+        self._last_writes += 1
+
+    def _save_last_now(self, trainer, force: bool = False) -> None:
+        fitting = trainer.state.fn == "fit" and not trainer.sanity_checking and not trainer.fast_dev_run
+        if not (self.save_last and fitting and trainer.global_step > 0) or (self._last_step == trainer.global_step
+                                                                            and not force):
+            return
+        best_step = self._last_global_step_saved  # Lightning skips a best at a step it saved: last does not count
+        self._save_last_checkpoint(trainer, self._monitor_candidates(trainer))
+        self._last_global_step_saved = best_step
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        super().on_train_batch_end(trainer, pl_module, outputs, batch, batch_idx)
+        n = self.last_every_n_steps
+        # A validation due after this step saves last itself, after it (a checkpoint saved before it would resume
+        # past the validation without running it).
+        if n and trainer.global_step % n == 0 and not _validation_follows(trainer):
+            self._save_last_now(trainer)
+
+    def on_validation_end(self, trainer, pl_module) -> None:
+        writes = self._last_writes
+        super().on_validation_end(trainer, pl_module)
+        if self._last_writes == writes:  # no new best (or last written before this validation): last now
+            self._save_last_now(trainer, force=True)
+
+    def on_train_end(self, trainer, pl_module) -> None:
+        super().on_train_end(trainer, pl_module)
+        self._save_last_now(trainer)
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        # Lightning forgets last (and the best's score) when the directory moved: the next last would be
+        # last-v1.ckpt, and the next resume would pick the stale last.ckpt. Paths follow the directory instead.
+        state = dict(state_dict)
+        old = state.get("dirpath")
+        if old and self.dirpath and os.path.normpath(old) != os.path.normpath(self.dirpath):
+            state = _moved(state, str(old), str(self.dirpath))
+        best = state.get("best_model_path")
+        if best and not Path(best).is_file():  # a best that is gone is forgotten: the next validation saves one
+            state.update(best_model_path="", best_model_score=None, best_k_models={}, kth_best_model_path="",
+                         kth_value=self.kth_value)
+        super().load_state_dict(state)
+
+
+def _moved(state: dict, old: str, new: str) -> dict:
+    """The callback's state with paths under ``old`` moved under ``new``."""
+    def move(path: str) -> str:
+        rel = os.path.relpath(path, old) if path else ".."
+        return path if rel.startswith("..") else os.path.join(new, rel)
+
+    state = {**state, "dirpath": new}
+    for key in ("best_model_path", "kth_best_model_path", "last_model_path"):
+        state[key] = move(state.get(key) or "")
+    state["best_k_models"] = {move(k): v for k, v in (state.get("best_k_models") or {}).items()}
+    return state
+
+
+def _validation_follows(trainer) -> bool:
+    """Whether Lightning validates right after the current training step (its own rule, as the loop applies it)."""
+    loop = trainer.fit_loop
+    try:
+        return bool(loop.epoch_loop._should_check_val_fx(loop._data_fetcher))
+    except (AttributeError, TypeError):  # another Lightning: last is written twice at worst, never skipped
+        return False
+
 
 # -- reading a run back ---------------------------------------------------------------------------------------------
 def load_checkpoint(path: str) -> dict:
-    """The checkpoint dict at ``path`` (on the CPU), with ``"path"`` set to it; a file that is not one is a UserError."""
-    p = Path(path)
-    if not p.is_file():
-        raise UserError(f"ckpt_path={path}: no such checkpoint")
-    try:
-        ckpt = torch.load(p, map_location="cpu", weights_only=False)
-    except Exception as err:  # noqa: BLE001 - any unpickling failure is a bad file for the user
-        raise UserError(f"{path}: not a readable checkpoint ({err.__class__.__name__}: {err})") from None
+    """The checkpoint dict at ``path`` (:func:`read_checkpoint`), with ``"path"`` set to it; one that is not an nvs
+    checkpoint is a UserError."""
+    ckpt = read_checkpoint(path)
     if not isinstance(ckpt, dict) or "state_dict" not in ckpt or not ckpt.get("nvs_config"):
         raise UserError(f"{path}: not an nvs checkpoint (no state_dict / nvs_config)")
     ckpt["nvs_config"] = upgrade_targets(ckpt["nvs_config"])  # a checkpoint of the flat layout names old modules

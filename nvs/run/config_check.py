@@ -144,6 +144,24 @@ def model_mismatch(asked: Mapping, held: Mapping, prefix: str = "model") -> str 
     return None
 
 
+def hydra_value(value: str) -> str:
+    """``value`` written for the right-hand side of a Hydra override: as is where Hydra's grammar reads it back
+    unchanged, else single-quoted (a path with spaces, non-ASCII letters or quotes: the bare form fails to parse)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    parser = OverridesParser.create()
+    try:
+        if parser.parse_overrides([f"k={value}"])[0].value() == value:
+            return value
+    except HydraException:
+        pass
+    # Inside quotes a run of backslashes is literal unless it precedes a quote: there each one is doubled.
+    body = re.sub(r"(\\*)'", lambda m: m[1] * 2 + "\\'", value)
+    body = re.sub(r"(\\+)$", lambda m: m[1] * 2, body)
+    return f"'{body}'"
+
+
 # Trainer arguments that conf/trainer/default.yaml leaves at Lightning's default are still ``trainer.<arg>=...``
 _TRAINER_ARG = re.compile(r"^trainer\.(\w+)=")
 

@@ -93,8 +93,15 @@ class Interruption(L.Callback):
             return f"interrupted by {name}{at} before any checkpoint was written: nothing to resume"
         return f"interrupted by {name}{at}: saved {self.last}; resume with: {self.resume}"
 
-    def _stop(self, trainer) -> None:
+    def _stop(self, trainer, in_step: bool = False) -> None:
         self.fitting = False
+        try:  # this step's row of the training curve: Lightning logs it after the hook this stop leaves
+            if in_step:
+                trainer._logger_connector.update_train_step_metrics()
+        except AttributeError:  # another Lightning: the resumed curve lacks that one row
+            pass
+        for logger in trainer.loggers:
+            logger.save()
         saved = self._save(trainer)
         raise Interrupted(self.signum, self.message(saved, trainer.global_step))
 
@@ -116,7 +123,7 @@ class Interruption(L.Callback):
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
         if self.signum is not None:
-            self._stop(trainer)
+            self._stop(trainer, in_step=True)
 
     def on_train_end(self, trainer, pl_module):
         if self.signum is not None:

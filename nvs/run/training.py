@@ -10,7 +10,6 @@ import inspect
 import shlex
 import signal
 import time
-import zipfile
 from pathlib import Path
 
 import lightning as L
@@ -23,19 +22,25 @@ from omegaconf import DictConfig
 
 from nvs.core.errors import Interrupted, UserError, user_message
 from nvs.core.provenance import device_name, git_sha
-from nvs.run.artifacts import check_writable, is_global_zero, remove_unstarted_run, write_metrics, write_per_image
+from nvs.run.artifacts import (check_writable, existing_files, is_global_zero, remove_unstarted_run, write_metrics,
+                               write_per_image)
 from nvs.run.build import build_data, build_module, choose_precision, parameter_count
+from nvs.run.checkpoint_files import read_checkpoint, resume_checkpoint
 from nvs.run.checkpoints import AtomicCheckpointIO
+from nvs.run.config_check import hydra_value
+from nvs.run.csv_log import continue_from
 from nvs.run.loggers import log_run_config
 from nvs.run.precision import Choice
 from nvs.run.quiet import silence_known_noise
+from nvs.run.run_checks import check_batches, check_resume, check_run_config, check_trained, resume_load_error
 from nvs.run.standard_callbacks import Interruption, Throughput
 
 
 def resume_command(out_dir: Path) -> str:
     """The command that resumes this run: the same overrides, with the run directory pinned."""
     task = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
-    return shlex.join(["python", "-m", "nvs.train", *task, f"hydra.run.dir={out_dir}"])
+    # Hydra-quoted where its grammar needs it (non-ASCII, spaces, commas), then shell-quoted: it runs as printed.
+    return shlex.join(["python", "-m", "nvs.train", *task, f"hydra.run.dir={hydra_value(str(out_dir))}"])
 
 
 def _trainer(cfg: DictConfig, **kwargs) -> L.Trainer:
@@ -67,45 +72,19 @@ def _short_run(cfg: DictConfig) -> dict:
     return capped
 
 
-def _resume_path(cfg: DictConfig, out_dir: Path) -> str | None:
-    if cfg.ckpt_path in (None, "none", "null"):
-        return None
-    if cfg.ckpt_path == "auto":
-        last = out_dir / "checkpoints" / "last.ckpt"
-        return _complete(last) if last.is_file() else None
-    if not Path(cfg.ckpt_path).is_file():
-        raise UserError(f"ckpt_path={cfg.ckpt_path}: no such checkpoint")
-    return _complete(Path(cfg.ckpt_path))
-
-
-def _complete(path: Path) -> str:
-    # torch.save writes a zip whose directory sits at the end: a write cut short by a kill has none.
-    if not zipfile.is_zipfile(path):
-        raise UserError(f"{path}: incomplete checkpoint (the run was probably killed while writing it); "
-                        "delete it to resume from scratch, or pass ckpt_path=<another checkpoint>")
-    try:  # every member's CRC: flipped bytes inside an intact zip would otherwise fail deep inside unpickling
-        with zipfile.ZipFile(path) as zf:
-            bad = zf.testzip()
-    except (zipfile.BadZipFile, OSError, EOFError) as err:
-        bad = f"({err})"
-    if bad:
-        raise UserError(f"{path}: corrupt checkpoint (member {bad} fails its checksum); delete it to resume from "
-                        "scratch, or pass ckpt_path=<another checkpoint>")
-    return str(path)
-
-
-def run(cfg: DictConfig, out_dir: Path, keep_unstarted: bool = True) -> dict:
+def run(cfg: DictConfig, out_dir: Path, keep_unstarted: bool = True, existing: frozenset[str] | None = None) -> dict:
     """Train and test one configuration; writes metrics.json and test_per_image.csv into ``out_dir``.
 
     ``keep_unstarted=False``: a failure before the first training step removes what the run wrote (and ``out_dir``
-    if that empties it).
+    if that empties it); ``existing``: what ``out_dir`` held before (default: what it holds now), never removed.
     """
     throughput = Throughput()  # counts the steps of this process
+    existing = existing_files(out_dir) if existing is None else existing
     try:
         return _run(cfg, out_dir, throughput)
     except BaseException:
         if not keep_unstarted and is_global_zero() and throughput.segment_steps == 0:
-            remove_unstarted_run(out_dir, job_name())
+            remove_unstarted_run(out_dir, job_name(), existing)
         raise
 
 
@@ -117,6 +96,7 @@ def _run(cfg: DictConfig, out_dir: Path, throughput: Throughput) -> dict:
     silence_known_noise()
     L.seed_everything(int(cfg.seed), workers=True)
     torch.set_float32_matmul_precision("high")
+    check_run_config(cfg)
     datamodule = build_data(cfg)
     fast_dev_run = bool(cfg.trainer.get("fast_dev_run"))
     testing = bool(cfg.test) and not fast_dev_run
@@ -140,6 +120,10 @@ def _run(cfg: DictConfig, out_dir: Path, throughput: Throughput) -> dict:
             if getattr(lg, "log_dir", None):
                 check_writable(lg.log_dir)
     ckpt_dir = Path(checkpoint_cbs[0].dirpath) if checkpoint_cbs and checkpoint_cbs[0].dirpath else out_dir
+    resume = resume_checkpoint(cfg.ckpt_path, ckpt_dir)
+    for lg in loggers:  # the curve of the steps before the checkpoint stays; the steps trained again are re-logged
+        if resume is not None and isinstance(lg, L.pytorch.loggers.CSVLogger) and is_global_zero():
+            continue_from(lg, resume[1])
     interruption = Interruption(ckpt_dir / "last.ckpt", resume_command(out_dir))
     carried = [throughput, interruption]
     if loggers:  # the learning rate of each parameter group at every logged step (it needs a logger)
@@ -147,9 +131,12 @@ def _run(cfg: DictConfig, out_dir: Path, throughput: Throughput) -> dict:
     trainer = _trainer(cfg, callbacks=callbacks + carried, logger=loggers or False,
                        plugins=[AtomicCheckpointIO()], precision=choice.precision, **_short_run(cfg))
     log_run_config(loggers, cfg)
+    if not fast_dev_run:
+        check_batches(int(cfg.data.loader.batch_size), len(datamodule.dataset("train")), trainer.world_size)
     interruption.install()
     try:
-        return _fit_and_test(cfg, out_dir, trainer, module, datamodule, callbacks, throughput, choice, testing)
+        return _fit_and_test(cfg, out_dir, trainer, module, datamodule, callbacks, throughput, choice, testing,
+                             resume[0] if resume else None)
     except SIGTERMException:  # Lightning's own stop on SIGTERM (inside validation); last.ckpt saved on the way
         raise Interrupted(signal.SIGTERM, interruption.message(interruption.last.is_file(), trainer.global_step)) \
             from None
@@ -158,8 +145,16 @@ def _run(cfg: DictConfig, out_dir: Path, throughput: Throughput) -> dict:
 
 
 def _fit_and_test(cfg: DictConfig, out_dir: Path, trainer: L.Trainer, module, datamodule, callbacks: list,
-                  throughput: Throughput, choice: Choice, testing: bool) -> dict:
-    trainer.fit(module, datamodule=datamodule, ckpt_path=_resume_path(cfg, out_dir))
+                  throughput: Throughput, choice: Choice, testing: bool, resume: str | None) -> dict:
+    check_resume(cfg, resume)
+    try:
+        trainer.fit(module, datamodule=datamodule, ckpt_path=resume)
+    except RuntimeError as err:
+        mismatch = resume_load_error(err, resume)
+        if mismatch is None:
+            raise
+        raise mismatch from None
+    check_trained(int(trainer.global_step))
     result = {
         "model": module.model_name,
         "data": cfg.data.name,
@@ -181,6 +176,8 @@ def _fit_and_test(cfg: DictConfig, out_dir: Path, trainer: L.Trainer, module, da
         for cb in callbacks:
             if isinstance(cb, L.pytorch.callbacks.ModelCheckpoint) and cb.best_model_path:
                 ckpt = cb.best_model_path
+        if ckpt:
+            read_checkpoint(ckpt, mmap=True)  # whole and its hash matching, as every tool reads it
         t0 = time.perf_counter()
         trainer.test(module, datamodule=datamodule, ckpt_path=ckpt, verbose=False)
         n = max(len(module.test_rows), 1)

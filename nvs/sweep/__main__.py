@@ -36,8 +36,9 @@ from nvs.core.errors import UserError
 from nvs.run.finished import Run
 from nvs.sweep.cost_check import check_precision
 from nvs.sweep.export import export_jobs, export_root
-from nvs.sweep.jobs import Job, Status, plan, prepare_job_dir, to_launch
+from nvs.sweep.jobs import Job, Status, plan, prepare_job_dir, refresh, to_launch
 from nvs.sweep.launch import Launch, _cores, _interrupt, launch_row, multirun_command
+from nvs.sweep.lock import JobLocks
 from nvs.sweep.progress import Progress
 from nvs.sweep.study import load_study
 from nvs.sweep.tables import write_results
@@ -99,6 +100,22 @@ def _selected_rows(study, globs: str) -> set[str]:
     return chosen
 
 
+def _lock(locks: JobLocks, jobs: list[Job], force: bool) -> list[Job]:
+    """The jobs whose lock this sweep takes; one taken by another sweep is left to it (one line each), and one that
+    another sweep finished since the plan is not run again."""
+    kept = []
+    for j in jobs:
+        holder = locks.acquire(j.dir.name)
+        if holder is not None:
+            print(f"[sweep] {j.row.name} s{j.seed}: skipped, another sweep is running it ({holder}; lock "
+                  f"{locks.path(j.dir.name)})", file=sys.stderr)
+        elif not force and refresh(j).status == Status.DONE:
+            locks.release(j.dir.name)
+        else:
+            kept.append(j)
+    return kept
+
+
 def run(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     argv = sys.argv[1:] if argv is None else argv
@@ -142,13 +159,17 @@ def run(argv: list[str] | None = None) -> int:
         order = [j for row in study.rows for j in launching if j.row is row]  # the order they run in
         progress = Progress(order, skipped=len(jobs) - len(order))
         progress.begin()
-        for row in study.rows:
-            row_jobs = [j for j in order if j.row is row]
-            if not row_jobs:
-                continue
-            for j in row_jobs:
-                prepare_job_dir(j, root, force=args.force)
-            launch_row(study, row_jobs, root, launch, extra, progress)
+        with JobLocks(root) as locks:
+            for row in study.rows:
+                row_jobs = _lock(locks, [j for j in order if j.row is row], args.force)
+                if not row_jobs:
+                    continue
+                for j in row_jobs:
+                    prepare_job_dir(j, root, force=args.force)
+                # the child holds the row's locks too: a job stays locked until its training process has ended
+                launch_row(study, row_jobs, root, launch, extra, keep_fds=locks.fds(j.dir.name for j in row_jobs),
+                           progress=progress)
+                locks.release()
         progress.end()
         jobs = plan(study, root, extra, exported)
     if args.export_jobs:

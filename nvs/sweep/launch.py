@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import ctypes
 import os
 import re
 import shlex
+import signal
 import subprocess
 import sys
 import threading
@@ -21,6 +23,7 @@ from pathlib import Path
 
 from nvs.core.atomic import write_text
 from nvs.core.errors import UserError
+from nvs.run.config_check import hydra_value
 from nvs.sweep import recorder
 from nvs.sweep.jobs import Job, Status, is_hydra, refresh, row_overrides
 from nvs.sweep.progress import Progress
@@ -63,7 +66,7 @@ def multirun_command(study: Study, row: Row, seeds: list[int], root: Path, launc
     module = "nvs.evaluate" if row.reference else "nvs.train"
     return [sys.executable, "-m", module, "-m", *row_overrides(study, row, extra),
             "seed=" + ",".join(str(s) for s in seeds),
-            f"hydra.sweep.dir={root.resolve()}", f"hydra.sweep.subdir={row.run}_s${{seed}}",
+            f"hydra.sweep.dir={hydra_value(str(root.resolve()))}", f"hydra.sweep.subdir={row.run}_s${{seed}}",
             f"+hydra.callbacks.nvs_sweep._target_={recorder.TARGET}",
             f"+hydra.callbacks.nvs_sweep.threads={launch.threads}", *launch.hydra_overrides]
 
@@ -85,10 +88,37 @@ def _interrupt(signum, frame):
     raise KeyboardInterrupt(f"signal {signum}")
 
 
-def _run_streaming(cmd: list[str], env: dict) -> tuple[int, str]:
-    """Run ``cmd``; its stdout/stderr pass through, the last stderr lines are kept for the error line."""
+def _die_with_parent():
+    """For ``Popen(preexec_fn=...)`` on Linux: the child gets SIGTERM when this process dies, ``kill -9`` included
+    (``prctl(PR_SET_PDEATHSIG)``), so no orphaned ``nvs.train`` keeps training a job the next sweep re-runs; SIGTERM
+    lets it save ``last.ckpt`` first. None elsewhere."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:  # resolved here, in the parent: the child between fork and exec only calls it
+        prctl = ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+    parent = os.getpid()
+
+    def preexec() -> None:
+        prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+        if os.getppid() != parent:  # the parent died before the request took effect
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    return preexec
+
+
+_PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+def _run_streaming(cmd: list[str], env: dict, keep_fds: tuple[int, ...] = ()) -> tuple[int, str]:
+    """Run ``cmd``; its stdout/stderr pass through, the last stderr lines are kept for the error line.
+
+    ``keep_fds``: descriptors the child inherits (the jobs' locks, nvs.sweep.lock); it dies with this process.
+    """
     tail: collections.deque[str] = collections.deque(maxlen=200)
-    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, env=env, bufsize=1)
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, env=env, bufsize=1, pass_fds=keep_fds,
+                            preexec_fn=_die_with_parent())
 
     def pump():
         for line in proc.stderr:
@@ -113,11 +143,11 @@ def _fail(job: Job, error: str) -> None:
 
 
 def launch_row(study: Study, jobs: list[Job], root: Path, launch: Launch, extra: tuple[str, ...] = (),
-               progress: Progress | None = None) -> list[Job]:
+               keep_fds: tuple[int, ...] = (), progress: Progress | None = None) -> list[Job]:
     """Launch one row's pending jobs until each has run once; returns them with their new status.
 
-    ``progress`` (nvs.sweep.progress) reports each job's start and end while the multirun runs.
-    """
+    ``keep_fds``: the jobs' lock descriptors, inherited by the training process (nvs.sweep.lock); ``progress``
+    (nvs.sweep.progress) reports each job's start and end while the multirun runs."""
     row = jobs[0].row
     env = dict(os.environ, OMP_NUM_THREADS=str(launch.threads), MKL_NUM_THREADS=str(launch.threads),
                PYTHONPATH=os.pathsep.join([str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])]))
@@ -126,7 +156,7 @@ def launch_row(study: Study, jobs: list[Job], root: Path, launch: Launch, extra:
         cmd = multirun_command(study, row, [j.seed for j in pending], root, launch, extra)
         print(f"[sweep] {row.name}: seeds {[j.seed for j in pending]}\n[sweep] $ {shlex.join(cmd)}", file=sys.stderr)
         with progress.watch(pending) if progress else contextlib.nullcontext():
-            rc, tail = _run_streaming(cmd, env)
+            rc, tail = _run_streaming(cmd, env, keep_fds)
         started = [j for j in pending if (j.dir / STDERR).exists() or (j.dir / "metrics.json").exists()]
         for j in pending:
             refresh(j)

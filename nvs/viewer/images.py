@@ -11,6 +11,9 @@ from PIL import Image, ImageOps, UnidentifiedImageError
 
 from nvs.core.errors import UserError
 
+# A 48-megapixel phone photo fits; decoded as RGBA that is ~200 MB, the most one upload may cost the viewer.
+MAX_UPLOAD_PIXELS = 50_000_000
+
 
 def decode_upload(data: bytes, size: int, name: str = "upload") -> torch.Tensor:
     """Any image PIL reads -> (3,size,size) uint8: EXIF orientation applied, alpha on white, centre-cropped, resized.
@@ -21,6 +24,10 @@ def decode_upload(data: bytes, size: int, name: str = "upload") -> torch.Tensor:
         raise UserError(f"{name}: the file is empty")
     try:
         with Image.open(io.BytesIO(data)) as im:
+            # The header's size, before any pixel is decoded: a small file can declare gigabytes of pixels.
+            if im.width * im.height > MAX_UPLOAD_PIXELS:
+                raise UserError(f"{name}: image too large ({im.width}x{im.height} pixels; the viewer takes at most "
+                                f"{MAX_UPLOAD_PIXELS // 10**6} megapixels)")
             im.load()
             im = ImageOps.exif_transpose(im)
             if im.mode in ("RGBA", "LA", "PA") or (im.mode == "P" and "transparency" in im.info):

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import torch
 from aiohttp import web
+from aiohttp.http_exceptions import HttpProcessingError
 
 from nvs.core.errors import UserError
 from nvs.report.pointcloud import ply_bytes
@@ -145,7 +146,13 @@ async def video(request: web.Request) -> web.Response:
 
 async def upload(request: web.Request) -> web.Response:
     session = request.app[SESSION]
-    form = await request.post()
+    try:
+        form = await request.post()
+    except web.HTTPException:
+        raise  # too large: 413 from the middleware
+    except (HttpProcessingError, ValueError, AssertionError, LookupError) as err:  # a malformed multipart body
+        why = " ".join(str(getattr(err, "message", "") or err).split()) or "cannot parse"
+        raise UserError(f"malformed upload: not a multipart form ({err.__class__.__name__}: {why[:200]})") from None
     field = form.get("image")
     if not isinstance(field, web.FileField):
         raise UserError("no file in the upload (form field 'image')")
