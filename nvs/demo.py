@@ -12,7 +12,12 @@ from pathlib import Path
 from nvs.core.metric_spec import IMAGE_METRICS, SPECS
 from nvs.run.config_check import hydra_value
 
-ROOT = Path(__file__).resolve().parents[1]
+
+
+def root() -> Path:
+    """Where data/ and runs/ go: the checkout the package runs from, or the current directory (an installed one)."""
+    here = Path(__file__).resolve().parents[1]
+    return here if (here / "pyproject.toml").is_file() else Path.cwd()
 
 
 # Training minutes: the demo's steps are chosen by time, from this machine's measured step (at most the
@@ -25,7 +30,7 @@ MIN_STEPS = 100
 
 def _run(args: list[str]) -> None:
     print("$ " + " ".join(args), flush=True)
-    subprocess.run(args, cwd=ROOT, check=True)
+    subprocess.run(args, cwd=root(), check=True)
 
 
 def planned_steps(experiment: str, size: int, minutes: float | None = None) -> tuple[int, str]:
@@ -44,7 +49,7 @@ def planned_steps(experiment: str, size: int, minutes: float | None = None) -> t
     if minutes is None:
         minutes = TRAIN_MINUTES["native" if choice.mode.startswith("bf16") else "emulated"]
     batches = make_batches(size, batch, 1, None, device)
-    contender = nvs_contender([f"experiment={experiment}"], choice.mode, batches, device, str(ROOT), size)
+    contender = nvs_contender([f"experiment={experiment}"], choice.mode, batches, device, str(root()), size)
     step_s = interleaved({"step": contender.train}, device, 1, 3)["step"]["median_ms"] / 1000 * OVERHEAD
     steps = max(MIN_STEPS, min(max_steps, int(60 * minutes / step_s)))
     return steps, (f"demo: a training step takes ~{step_s:.2f} s here ({choice.mode}, measured): {steps} steps "
@@ -64,13 +69,13 @@ def main(size: int = 64, experiment: str = "demo") -> None:
 
 def _demo(size: int, experiment: str) -> None:
     t0 = time.perf_counter()
-    data = ROOT / "data" / f"chairs_{size}"
+    data = root() / "data" / f"chairs_{size}"
     if not (data / "meta.json").is_file():
         _run([sys.executable, "-m", "nvs.data.render", "chairs", f"size={size}", f"out={data}"])
     t_render = time.perf_counter() - t0
     steps, why = planned_steps(experiment, size)
     print(why, flush=True)
-    runs = ROOT / "runs" / "demo"
+    runs = root() / "runs" / "demo"
     stamp = time.strftime("%Y-%m-%d_%H-%M-%S")
     run_dir = runs / stamp
     # Hydra-quoted: a checkout under a path with spaces or non-ASCII letters still parses

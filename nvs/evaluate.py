@@ -25,6 +25,7 @@ from nvs.run.precision import Choice, choose
 from nvs.run.quiet import silence_known_noise
 from nvs.run.artifacts import (check_creatable, check_writable, is_global_zero, remove_unstarted_run, run_dir_of,
                            summary_line, write_metrics, write_per_image)
+from nvs.run.compose import CONF_DIR
 
 
 def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
@@ -128,7 +129,7 @@ def evaluation_precision(cfg: DictConfig, run: DictConfig) -> Choice:
         raise UserError(f"precision={cfg.precision}: {err}") from None
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="evaluate")
 @exits_cleanly
 def main(cfg: DictConfig) -> None:
     run_dir = Path(HydraConfig.get().runtime.output_dir)

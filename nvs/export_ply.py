@@ -12,6 +12,7 @@ from omegaconf import DictConfig, OmegaConf
 from nvs.core.errors import UserError
 from nvs.report.pointcloud import write_ply
 from nvs.run.cli import exits_cleanly
+from nvs.run.compose import CONF_DIR
 from nvs.run.config_check import check_cli_overrides
 from nvs.run.quiet import silence_known_noise
 from nvs.viewer.build import build_session, pick_source, source_ids
@@ -29,12 +30,12 @@ def export(cfg: DictConfig) -> Path:
     if unknown:
         raise UserError(f"pose: unknown control(s) {', '.join(unknown)}; this model's are {', '.join(names)}")
     values = {**session.controls.initial(source.meta), **{k: float(v) for k, v in pose.items()}}
-    xyz, rgb, comments = view_points(session, source.key, values, cfg.max_depth)
+    xyz, rgb, comments = view_points(session, source.key, values, cfg.max_depth, bool(cfg.keep_background))
     out = Path(cfg.out) if cfg.out else Path(HydraConfig.get().runtime.output_dir) / f"{file_stem(source.label)}.ply"
     return write_ply(out, xyz, rgb, comments)
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="export_ply")
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="export_ply")
 @exits_cleanly
 def main(cfg: DictConfig) -> None:
     check_cli_overrides("export_ply", HydraConfig.get().overrides.task)

@@ -12,6 +12,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from nvs.core.errors import UserError
 from nvs.run.cli import exits_cleanly
+from nvs.run.compose import CONF_DIR
 from nvs.run.config_check import check_cli_overrides, trainer_arguments
 from nvs.run.training import job_name, run
 from nvs.run.artifacts import (check_creatable, existing_files, is_global_zero, remove_unstarted_run, run_dir_of,
@@ -55,7 +56,7 @@ def check_composes(argv: list[str]) -> None:
         raise UserError(" ".join(lines[:8])) from None
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="train")
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="train")
 @exits_cleanly
 def main(cfg: DictConfig) -> None:
     out_dir = Path(HydraConfig.get().runtime.output_dir)

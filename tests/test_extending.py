@@ -68,9 +68,42 @@ def test_the_extending_example_converts_trains_and_evaluates_outside_nvs(tmp_pat
     run_dir = next((tmp_path / "runs").rglob("metrics.json")).parent
     m = json.loads((run_dir / "metrics.json").read_text())
     assert m["model"] == "warp_refine" and m["data"] == "turntable" and m["steps"] == 3
-    assert 0 < m["params"] < 100_000 and m["test"]["n_pairs"] == 4 and 0 < m["test"]["l1"] < 1
+    stated = re.search(r"([\d,]+) parameters at `channels: 16`, the `params`", DOC.read_text()).group(1)
+    assert m["params"] == int(stated.replace(",", "")) and m["test"]["n_pairs"] == 4 and 0 < m["test"]["l1"] < 1
     config = (run_dir / ".hydra" / "config.yaml").read_text()
     assert "_target_: mynvs.net.WarpRefine" in config and "_target_: mynvs.losses.DepthTV" in config
     with open(run_dir / "csv" / "metrics.csv") as f:
         header = next(csv.reader(f))
     assert {"train/loss/recon", "train/loss/depth_tv", "train/loss/total"} <= set(header)
+
+
+def test_the_page_shows_the_turntable_layout_the_converter_reads():
+    sys.path.insert(0, str(EXAMPLE))
+    try:
+        from mynvs.turntable import NAME
+    finally:
+        sys.path.remove(str(EXAMPLE))
+    block = re.search(r"```\n(my_turntable/\n.*?)```", DOC.read_text(), re.S).group(1)
+    images = [ln.strip() for ln in block.splitlines() if ln.strip().endswith(".png")]
+    assert len(images) >= 4 and all(NAME.search(name) for name in images), images
+    assert {"chair_a/", "chair_b/", "chair_c/"} <= {ln.strip() for ln in block.splitlines()}  # the 3 splits' minimum
+
+
+def test_a_network_without_n_scales_and_too_few_scales_is_one_line_at_step_one(objects_root, tmp_path):
+    """A model config without a loss override keeps recon's four scale weights; a one-scale network that does not
+    declare ``n_scales`` is refused with one line and exit 2 at its first step, and leaves no run folder."""
+    (tmp_path / "noscales.py").write_text(
+        "from mynvs.net import WarpRefine\n\n\nclass NoScales(WarpRefine):\n    n_scales = None\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(EXAMPLE), str(tmp_path), str(REPO)])}
+    runs = tmp_path / "runs"
+    res = subprocess.run([sys.executable, "-m", "nvs.train", "--config-dir", str(EXAMPLE / "conf"), "model=warp_refine",
+                          "model._target_=noscales.NoScales", "loss=[recon]", f"data.root={objects_root}",
+                          f"paths.log_dir={runs}", "trainer.max_steps=2", "data.loader.batch_size=2",
+                          "trainer.enable_progress_bar=false", "trainer.precision=32-true"],
+                         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert res.returncode == 2, res.stderr[-3000:]
+    errors = [ln for ln in res.stderr.splitlines() if ln.startswith("error:")]
+    assert errors == ["error: loss.recon.scale_weights has 4 weights but the model predicts 1 scale(s); use "
+                      "loss=[recon_final,...] or loss.recon.scale_weights=[1.0]"], res.stderr[-3000:]
+    assert "Traceback" not in res.stderr and not list(runs.rglob("*.ckpt"))
+    assert not (runs / "train").exists() or not any((runs / "train").iterdir())

@@ -3,6 +3,7 @@ the start-up noise that is silenced (and only that)."""
 
 from __future__ import annotations
 
+import csv
 import logging
 import re
 import subprocess
@@ -14,6 +15,7 @@ import lightning as L
 import numpy as np
 import pytest
 import torch
+import yaml
 from hydra.utils import instantiate
 from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger, WandbLogger
 from PIL import Image
@@ -31,7 +33,7 @@ def test_loggers_multi_select_and_wandb_is_offline(tmp_path):
     assert list(cfg.logger) == ["csv", "tensorboard", "wandb"]
     assert cfg.logger.wandb.offline is True and cfg.logger.wandb.log_model is False
     loggers = [instantiate(c) for c in cfg.logger.values()]
-    assert [type(lg) for lg in loggers] == [CSVLogger, TensorBoardLogger, WandbLogger]
+    assert [type(lg) for lg in loggers][:2] == [CSVLogger, TensorBoardLogger] and isinstance(loggers[2], WandbLogger)
     assert compose_train(["logger=tensorboard"]).logger.keys() == {"tensorboard"}
 
 
@@ -90,37 +92,48 @@ def test_silence_drops_exactly_the_listed_noise(caplog):
 
 
 def test_a_run_logs_to_tensorboard_wandb_offline_and_csv_with_the_image_grid(objects_root, tmp_path):
-    """A real ``python -m nvs.train`` with all three loggers: scalars under the same names in each, val/grid at each
-    validation, the step bar with its ETA, and none of the silenced start-up noise."""
+    """A real ``python -m nvs.train`` with all three loggers, stdout a file: scalars under the same names in each,
+    the resolved config as hyperparameters, the learning rate, the test metrics, val/grid and the checkpoint at the
+    validation scalars' steps, the training loss of a run shorter than log_every_n_steps, and a console without
+    W&B's banner, escape codes or the logger version."""
     cmd = [sys.executable, "-m", "nvs.train", f"data.root={objects_root}", f"paths.log_dir={tmp_path}",
            "logger=[csv,tensorboard,wandb]", "trainer.max_steps=4", "trainer.val_check_interval=2",
-           "trainer.log_every_n_steps=1", "data.loader.batch_size=2", "loss=[recon,vgg]", "test=false"]
+           "data.loader.batch_size=2", "loss=[recon,vgg]", "scheduler=onecycle"]
     res = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
     run_dir = next(tmp_path.rglob("metrics.json")).parent
-    scalars = {"train/loss/recon", "train/loss/vgg", "train/loss/total", "val/l1", "val/ssim_paper"}
+    scalars = {"train/loss/recon", "train/loss/vgg", "train/loss/total", "val/l1", "val/ssim_paper", "lr-Adam",
+               "test/l1", "test/ssim_paper", "test/psnr"}
+    assert [p.name for p in (run_dir / "checkpoints").glob("best-*.ckpt")] == ["best-4.ckpt"]
 
-    # TensorBoard: the event file's tags
+    # TensorBoard: the event files' tags (the test metrics come after the fit, in a second file of the same run)
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    (events,) = (run_dir / "tensorboard").glob("events.out.tfevents.*")
-    acc = EventAccumulator(str(events), size_guidance={"images": 0})
+    acc = EventAccumulator(str(run_dir / "tensorboard"), size_guidance={"images": 0})
     acc.Reload()
     assert scalars <= set(acc.Tags()["scalars"]) and acc.Tags()["images"] == ["val/grid"]
     assert [e.step for e in acc.Images("val/grid")] == [2, 4]  # each validation, not the sanity check
-    assert len(acc.Scalars("train/loss/total")) == 4
+    assert [e.step for e in acc.Scalars("val/l1")] == [2, 4]  # the grid's and the checkpoint's steps
+    assert len(acc.Scalars("train/loss/total")) == 1  # 4 steps < log_every_n_steps=25: logged once all the same
+    assert "_hparams_/experiment" in acc.PluginTagToContent("hparams")
+    tb_hparams = yaml.safe_load((run_dir / "tensorboard" / "hparams.yaml").read_text())
+    assert tb_hparams["trainer"]["max_steps"] == 4 and tb_hparams["data"]["root"] == str(objects_root)
 
-    # W&B offline: the run's files, the same keys in its record log, the grid as media
+    # W&B offline: the run's files, the same keys and the config in its record log, the grid as media
     (wandb_run,) = (run_dir / "wandb").glob("offline-run-*")
     (record,) = wandb_run.glob("run-*.wandb")
     data = record.read_bytes()
     assert all(key.encode() in data for key in scalars | {"val/grid", "trainer/global_step"})
+    assert b"val_check_interval" in data and b"max_delta_azimuth" in data  # config keys
     grids = sorted((wandb_run / "files" / "media" / "images" / "val").glob("grid_*.png"))
     assert len(grids) == 2
 
-    # CSV: the same scalar names, and the grid as PNGs beside it
-    header = (run_dir / "csv" / "metrics.csv").read_text().splitlines()[0].split(",")
-    assert scalars <= set(header)
+    # CSV: the same scalar names, the config as hparams.yaml, and the grid as PNGs beside it
+    rows = list(csv.DictReader((run_dir / "csv" / "metrics.csv").open()))
+    assert scalars <= set(rows[0])
+    assert [int(r["step"]) for r in rows if r["val/l1"]] == [2, 4]
+    assert [int(r["step"]) for r in rows if r["test/l1"]] == [4]
+    assert yaml.safe_load((run_dir / "csv" / "hparams.yaml").read_text())["trainer"]["val_check_interval"] == 2
     pngs = sorted((run_dir / "csv" / "images").glob("val_grid_step*.png"))
     assert [p.name for p in pngs] == ["val_grid_step0000002.png", "val_grid_step0000004.png"]
     grid = np.asarray(Image.open(pngs[0]))
@@ -129,6 +142,39 @@ def test_a_run_logs_to_tensorboard_wandb_offline_and_csv_with_the_image_grid(obj
 
     # the bar counts steps toward max_steps with an ETA; the listed noise is gone, other output stays
     assert "train steps" in res.stdout and "4/4" in res.stdout and re.search(r"[1-3]/4 \[\d\d:\d\d<", res.stdout)
-    noise = ("litlogger", "litmodels", "LeafSpec", "module(s) in eval mode")
+    assert "\r" not in res.stdout  # a log file: one line per event, no carriage-return updates
+    noise = ("litlogger", "litmodels", "LeafSpec", "module(s) in eval mode", "wandb:", "anonymous", "v_num",
+             "\x1b", "Validation")
     assert not [n for n in noise if n in res.stdout + res.stderr]
     assert "`Trainer.fit` stopped: `max_steps=4` reached." in res.stderr
+
+
+def test_the_validation_grid_takes_pairs_spread_over_the_split_one_per_model():
+    from types import SimpleNamespace
+
+    from nvs.run.display_callbacks import ValidationImages
+
+    # 4 models x 4 pairs, listed model by model as the objects format lists its validation pairs
+    items = [{"src": torch.full((3, 2, 2), float(i)), "id_src": f"m{i // 4}_{i}", "index": i} for i in range(16)]
+    loader = torch.utils.data.DataLoader(items, batch_size=8)
+    callback = ValidationImages(samples=4)
+    callback.on_validation_start(SimpleNamespace(val_dataloaders=loader), None)
+    assert callback.batch["index"].tolist() == [0, 4, 8, 12]
+    assert [i.split("_")[0] for i in callback.batch["id_src"]] == ["m0", "m1", "m2", "m3"]
+    few = ValidationImages(samples=4)
+    few.on_validation_start(SimpleNamespace(val_dataloaders=[torch.utils.data.DataLoader(items[:3])]), None)
+    assert few.batch["index"].tolist() == [0, 1, 2]
+
+
+def test_log_interval_is_capped_at_a_shorter_run_and_wandb_is_quiet(tmp_path):
+    from nvs.run.loggers import QuietWandbLogger
+    from nvs.run.training import _short_run
+
+    cfg = compose_train([f"paths.output_dir={tmp_path}", "trainer.max_steps=10"])
+    assert cfg.trainer.log_every_n_steps == 25 and cfg.trainer.val_check_interval == 500
+    assert _short_run(cfg) == {"log_every_n_steps": 10, "val_check_interval": 10}
+    assert _short_run(compose_train([f"paths.output_dir={tmp_path}", "trainer.max_steps=100"])) == {
+        "val_check_interval": 100}
+    assert _short_run(compose_train([f"paths.output_dir={tmp_path}", "trainer.max_steps=1000"])) == {}
+    logger = QuietWandbLogger(save_dir=str(tmp_path), offline=True)
+    assert "anonymous" not in logger._wandb_init and logger._wandb_init["settings"].silent is True

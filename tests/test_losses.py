@@ -3,6 +3,7 @@
 import pytest
 import torch
 
+from nvs.core.errors import UserError
 from nvs.core.types import Extras
 from nvs.losses.terms import DepthConsistencyLoss, EdgeSmoothLoss, ReconLoss, VGGLoss, WarpLoss
 from tests.conftest import fixture_batch
@@ -125,13 +126,15 @@ def test_too_many_scale_weights_are_refused_when_the_module_is_built(tmp_path):
 
 
 def test_recon_on_a_network_of_unknown_scales_still_refuses_too_few_predictions():
-    """A network without ``n_scales`` is not checked at build time; the loss then fails rather than drop weights."""
+    """A network without ``n_scales`` is not checked at build time; the loss then fails with the build check's line
+    rather than drop weights."""
     batch = fixture_batch()
     out = _perfect_outputs(batch)
     out["rgb_scales"] = out["rgb_scales"][-1:]
-    ReconLoss().check_network(torch.nn.Identity(), "loss.recon")  # nothing to check against
-    with pytest.raises(ValueError, match="zip"):
-        ReconLoss(scale_weights=[1.0, 0.5])(out, batch)
+    loss = ReconLoss(scale_weights=[1.0, 0.5])
+    loss.check_network(torch.nn.Identity(), "loss.recon")  # nothing to check against
+    with pytest.raises(UserError, match=r"^loss.recon.scale_weights has 2 weights but the model predicts 1 scale"):
+        loss(out, batch)
 
 
 def test_options_are_resolved_at_construction():

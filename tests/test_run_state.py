@@ -100,7 +100,9 @@ class KillAt(L.Callback):
 
 def _rows(path: Path) -> list[tuple[int, str]]:
     with path.open(newline="") as f:
-        return [(int(r["step"]), "val" if r.get("val/l1") else "train") for r in csv.DictReader(f)]
+        # the loss and validation rows (the learning rate has rows of its own)
+        return [(int(r["step"]), "val" if r.get("val/l1") else "train") for r in csv.DictReader(f)
+                if r.get("val/l1") or r.get("train/loss/total")]
 
 
 def test_a_moved_run_resumes_its_newest_checkpoint_and_keeps_its_curve(objects_root, tmp_path):
@@ -120,9 +122,10 @@ def test_a_moved_run_resumes_its_newest_checkpoint_and_keeps_its_curve(objects_r
     names = sorted(p.name for p in ckpts.glob("*.ckpt"))  # no last-v1.ckpt; the best followed the directory
     assert len(names) == 2 and names[0].startswith("best-") and "-v" not in names[0] and names[1] == "last.ckpt"
     assert torch.load(ckpts / "last.ckpt", weights_only=False)["global_step"] == 4
-    # every step's row once, the first segment's kept: train rows 0..3 (global steps 1..4), validations after 2 and 4
-    assert _rows(moved / "csv" / "metrics.csv") == [(0, "train"), (1, "train"), (1, "val"), (2, "train"),
-                                                   (3, "train"), (3, "val")]
+    # every step's row once, the first segment's kept: train rows 0..3 (global steps 1..4), validations at 2 and 4
+    # (the steps of their checkpoints)
+    assert _rows(moved / "csv" / "metrics.csv") == [(0, "train"), (1, "train"), (2, "val"), (2, "train"),
+                                                   (3, "train"), (4, "val")]
 
 
 def test_resume_picks_the_newest_checkpoint_by_its_step_not_its_name(tmp_path):

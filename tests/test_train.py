@@ -327,3 +327,17 @@ def test_the_configured_adam_is_fused_and_steps_like_the_per_parameter_loop(tmp_
     for p, q, p0 in zip(ref, fused, start):
         assert (p - p0).abs().mean() > 1e-4  # the steps moved the parameters (5 steps of lr 1e-4)
         assert torch.allclose(p, q, rtol=0, atol=1e-7)
+
+
+def test_a_run_shorter_than_val_check_interval_still_tests_a_validation_checkpoint(objects_root, tmp_path):
+    """max_steps=3 under the default val_check_interval=500: the run validates at its last step and tests that
+    checkpoint; without any validation, metrics.json says the final weights were tested."""
+    res = _train(objects_root, tmp_path / "a", "trainer.max_steps=3", "data.loader.batch_size=2", "loss=[recon]")
+    assert res.returncode == 0, res.stderr[-3000:]
+    m = json.loads(next((tmp_path / "a").rglob("metrics.json")).read_text())
+    assert m["checkpoint"].endswith("best-3.ckpt") and m["tested_weights"] == "best validation checkpoint"
+    res = _train(objects_root, tmp_path / "b", "trainer.max_steps=2", "data.loader.batch_size=2", "loss=[recon]",
+                 "trainer.limit_val_batches=0")
+    assert res.returncode == 0, res.stderr[-3000:]
+    m = json.loads(next((tmp_path / "b").rglob("metrics.json")).read_text())
+    assert m["checkpoint"] is None and m["tested_weights"] == "final weights (step 2)"

@@ -4,6 +4,9 @@ back with the frame and vertex counts asked for, and the CLIs run end to end on 
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
+from pathlib import Path
 
 import imageio_ffmpeg
 import numpy as np
@@ -20,6 +23,7 @@ from nvs.viewer.video import compose_frames, render_views, write_video
 from tests.conftest import compose_train, fixture_batch
 from tests.viewer_helpers import built_net, one_step_checkpoint
 
+REPO = Path(__file__).resolve().parents[1]
 OBJECTS = ObjectControls(40, (0.0, 0.0, 2.0))
 SCENES = SceneControls((-0.4, 0.2), (0.0, 1.5), 0.02)
 
@@ -78,10 +82,9 @@ def test_bad_custom_paths_are_one_clear_error(tmp_path):
         camera_path("custom", OBJECTS, {}, 4, custom=tmp_path / "missing.yaml")
     with pytest.raises(UserError, match="expected one of orbit, forward, custom"):
         camera_path("spiral", OBJECTS, {}, 4)
-    f.write_text("poses:\n  - {azimuth: 90, elevation: 0}\n  - {azimuth: 0, elevation: 0}\n")
-    path = camera_path("custom", OBJECTS, {}, 3, custom=f)
-    with pytest.raises(UserError, match="azimuth=90° is outside the range the model was trained on"):
-        OBJECTS.pose(path[0], {"azimuth": 0.0, "elevation": 0.0})
+    f.write_text("poses:\n  - {azimuth: 0, elevation: 0}\n  - {azimuth: 90, elevation: 0}\n")
+    with pytest.raises(UserError, match="p.yaml: pose 1: azimuth=90° is outside the range the model was trained on"):
+        camera_path("custom", OBJECTS, {}, 3, custom=f)  # the keyframe itself, before any frame is rendered
 
 
 # -- frames, files -------------------------------------------------------------------------------------------------
@@ -151,11 +154,58 @@ def test_render_video_cli_writes_mp4_and_gif_with_the_frames_asked_for(checkpoin
         render(_cli_cfg("render_video", tmp_path, checkpoint, "path=forward", f"out_dir={tmp_path}"))
 
 
+def test_render_video_refuses_an_out_of_range_keyframe_before_rendering(checkpoint, tmp_path, monkeypatch):
+    import nvs.render_video as rv
+
+    monkeypatch.setattr(rv, "render_views", lambda *a, **k: pytest.fail("rendering started"))
+    poses = tmp_path / "poses.yaml"
+    poses.write_text("poses:\n  - {azimuth: 0, elevation: 0}\n  - {azimuth: 60, elevation: 10}\n")
+    with pytest.raises(UserError, match="poses.yaml: pose 1: azimuth=60° is outside the range"):
+        rv.render(_cli_cfg("render_video", tmp_path, checkpoint, "path=custom", f"custom={poses}", "frames=4"))
+
+
+def test_render_video_writes_beside_the_checkpoint_by_default(checkpoint, tmp_path):
+    from nvs.render_video import render, videos_dir
+
+    written = render(_cli_cfg("render_video", tmp_path, checkpoint, "path=orbit", "frames=3", "formats=[gif]",
+                              "progress=false", "source=m3_40_0"))
+    assert videos_dir(checkpoint) == checkpoint.parent.parent / "videos"
+    assert [p.parent for p in written] == [checkpoint.parent.parent / "videos"] and written[0].is_file()
+    assert videos_dir("elsewhere/model.ckpt") == Path("elsewhere/videos")
+
+
+def test_a_refused_render_video_leaves_no_run_folder(checkpoint, tmp_path):
+    res = subprocess.run([sys.executable, "-m", "nvs.render_video", f"ckpt_path={checkpoint}", "path=forward",
+                          f"paths.log_dir={tmp_path / 'runs'}"], cwd=REPO, capture_output=True, text=True,
+                         timeout=300)
+    assert res.returncode == 2 and "path=forward drives the camera forward" in res.stderr, res.stderr[-2000:]
+    assert "Traceback" not in res.stderr
+    assert not (tmp_path / "runs" / "render_video").exists() or not any((tmp_path / "runs" / "render_video").iterdir())
+
+
+def test_object_point_clouds_leave_out_the_white_background(tmp_path):
+    from types import SimpleNamespace
+
+    from nvs.viewer.cloud import view_points
+
+    rgb = np.full((4, 4, 3), 255, np.uint8)
+    rgb[:2] = (200, 30, 30)  # the object: the top half
+    rgb[3, 3] = (250, 250, 240)  # not white in every channel: kept
+    view = SimpleNamespace(depth_values=np.full((4, 4), 2.0, np.float32), rgb=rgb)
+    session = SimpleNamespace(view=lambda key, values: view, K=torch.eye(3)[None], controls=OBJECTS,
+                              source=lambda key: SimpleNamespace(label="m_0_0"))
+    xyz, colours, _ = view_points(session, "k", {"azimuth": 0.0, "elevation": 0.0})
+    assert len(xyz) == 9 and (colours.min(axis=1) < 245).all()
+    assert len(view_points(session, "k", {}, keep_background=True)[0]) == 16
+    session.controls = SCENES  # a scene has no background: every pixel is a point
+    assert len(view_points(session, "k", {})[0]) == 16
+
+
 def test_export_ply_cli_writes_one_vertex_per_pixel(checkpoint, tmp_path):
     from nvs.export_ply import export
 
     out = export(_cli_cfg("export_ply", tmp_path, checkpoint, "source=1", "pose={azimuth:20}",
-                          f"out={tmp_path / 'v.ply'}"))
+                          f"out={tmp_path / 'v.ply'}", "keep_background=true"))
     xyz, rgb = read_ply(out)
     assert xyz.shape == (64 * 64, 3) and rgb.shape == (64 * 64, 3) and (xyz[:, 2] > 0).all()
     assert b"at azimuth=20, elevation=" in out.read_bytes()[:400]

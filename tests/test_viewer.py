@@ -207,7 +207,9 @@ def test_point_cloud_and_video_endpoints(viewer_url, tmp_path):
         assert r.headers["Content-Disposition"].startswith('attachment; filename="') and ".ply" in \
             r.headers["Content-Disposition"]
         xyz, rgb = read_ply(io.BytesIO(r.read()))
-    assert xyz.shape == (64 * 64, 3) and rgb.shape == (64 * 64, 3) and (xyz[:, 2] > 0).all()
+    # every pixel but those rendered as the white background (an object model's cloud leaves them out)
+    assert 0 < len(xyz) <= 64 * 64 and rgb.shape == xyz.shape and (xyz[:, 2] > 0).all()
+    assert (rgb.min(axis=1) < 245).all()
     with urllib.request.urlopen(f"{viewer_url}api/video?source=g0&path=orbit&frames=5&fps=10", timeout=120) as r:
         clip = json.loads(r.read())
     assert clip["frames"] == 5

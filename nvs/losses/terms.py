@@ -61,18 +61,27 @@ class ReconLoss(LossTerm):
             raise ValueError("scale_weights must list at least the final scale")
         self.side_upsample = check_choice(side_upsample, UPSAMPLES, "side_upsample")
 
+    key = "loss.recon"  # its config key, set by the build check
+
+    def _too_many(self, n_scales: int) -> UserError:
+        return UserError(f"{self.key}.scale_weights has {len(self.scale_weights)} weights but the model predicts "
+                         f"{n_scales} scale(s); use loss=[recon_final,...] or {self.key}.scale_weights=[1.0]")
+
     def check_network(self, net: nn.Module, key: str) -> None:
+        self.key = key
         n_scales = net.n_scales if isinstance(net, MultiScale) else None
         if n_scales is not None and len(self.scale_weights) > n_scales:
-            raise UserError(f"{key}.scale_weights has {len(self.scale_weights)} weights but the model predicts "
-                            f"{n_scales} scale(s); use loss=[recon_final,...] or {key}.scale_weights=[1.0]")
+            raise self._too_many(n_scales)
 
     def forward(self, out: Outputs, batch: Batch) -> torch.Tensor:
         tgt = to_model_range(batch["tgt"])
         preds = out["rgb_scales"][::-1][:len(self.scale_weights)]  # finest first
+        try:
+            pairs = list(zip(self.scale_weights, preds, strict=True))
+        except ValueError:  # too few predictions from a network without ``n_scales`` (unchecked at build time)
+            raise self._too_many(len(preds)) from None
         total = tgt.new_zeros(())
-        # strict: a network without ``n_scales`` that predicts too few scales still fails (less clearly)
-        for w, p in zip(self.scale_weights, preds, strict=True):
+        for w, p in pairs:
             p = upsample_side(p, tuple(tgt.shape[-2:]), self.side_upsample)
             total = total + w * (up(p) - tgt).abs().mean()
         return total

@@ -199,6 +199,8 @@ class NVSModule(L.LightningModule):
         for name in self.val_metrics:
             mean = sum(r[name] for r in rows) / len(rows) if rows else float("nan")
             self.log(f"val/{name}", torch.tensor(mean, device=self.device), sync_dist=True)
+        # Lightning logs validation a step early (19 for best-20.ckpt): a logged "step" is every logger's x-axis
+        self.log("step", float(self.global_step), sync_dist=True)
 
     @staticmethod
     def _indices(batch: Batch, start: int) -> list[int]:
@@ -228,6 +230,8 @@ class NVSModule(L.LightningModule):
         self.test_rows_seen = gather_sum(float(len(self.test_rows)))
         self.test_forward_s = gather_sum(self.test_forward_s)
         self.test_rows = gather_rows(self.test_rows)
+        means = {f"test/{k}": float(v) for k, v in self.test_summary().items() if k != "n_pairs" and not math.isnan(v)}
+        self.log_dict({**means, "step": float(self.global_step)}, sync_dist=True)  # identical on every rank
 
     def on_test_epoch_start(self):
         self.test_rows = []

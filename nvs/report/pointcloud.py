@@ -19,11 +19,12 @@ from plyfile import PlyData, PlyElement
 
 
 def depth_to_points(depth: np.ndarray | torch.Tensor, K: np.ndarray | torch.Tensor, rgb: np.ndarray,
-                    max_depth: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+                    max_depth: float | None = None, background: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """depth (H,W) > 0, K (3,3) at that resolution, rgb (H,W,3) uint8 -> xyz (N,3) float32, colours (N,3) uint8.
 
-    Pixels with non-finite or non-positive depth (no data), or farther than ``max_depth`` (e.g. the sky of a drive
-    scene), are left out; N is the number of pixels kept, in row-major pixel order.
+    Pixels with non-finite or non-positive depth (no data), farther than ``max_depth`` (e.g. the sky of a drive
+    scene), or with every channel at least ``background`` (an object render's white background, e.g. 245) are left
+    out; N is the number of pixels kept, in row-major pixel order.
     """
     d = torch.as_tensor(np.asarray(depth, dtype=np.float32))
     if d.ndim != 2 or tuple(np.shape(rgb)) != (*d.shape, 3):
@@ -32,6 +33,8 @@ def depth_to_points(depth: np.ndarray | torch.Tensor, K: np.ndarray | torch.Tens
     keep = torch.isfinite(d) & (d > 0)
     if max_depth is not None:
         keep &= d <= max_depth
+    if background is not None:
+        keep &= torch.from_numpy(np.asarray(rgb).min(axis=-1) < background)
     xyz = depth_to_3d_v2(torch.where(keep, d, torch.zeros_like(d))[None], Kt[None])[0]  # (H,W,3)
     mask = keep.numpy()
     return xyz.numpy()[mask].astype(np.float32), np.asarray(rgb, dtype=np.uint8)[mask]

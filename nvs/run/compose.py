@@ -6,7 +6,11 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+import nvs
+
+# nvs/conf: in a checkout a link to the top-level conf/, in an installed package the copy its wheel ships (found from
+# the package, wherever this module sits in it); resolved so that a checkout's CONF_DIR.parent is the repository.
+CONF_DIR = (Path(nvs.__file__).resolve().parent / "conf").resolve()
 
 
 def compose_raw(config_name: str, overrides: list[str] | tuple[str, ...] = ()) -> DictConfig:

@@ -18,7 +18,8 @@ from nvs.core.atomic import write_text
 
 def continue_from(logger: CSVLogger, step: int) -> None:
     """Resuming from a checkpoint at global step ``step``: keep the rows ``logger`` wrote before it (Lightning labels
-    the rows of global step s as s - 1), drop the later ones (those steps are trained again), append the new ones.
+    the training rows of global step s as s - 1; validation and test rows carry s itself, the module logs ``step``),
+    drop the later ones (those steps are trained again), append the new ones.
 
     Lightning's logger deletes metrics.csv when its writer starts in a non-empty folder: it gets this writer first.
     """
@@ -38,7 +39,8 @@ class _ContinuedWriter(ExperimentWriter):
             return
         with path.open(newline="") as f:
             reader = csv.DictReader(f)
-            rows = [r for r in reader if _step(r) < self._keep_before]
+            rows = [r for r in reader if _step(r) < self._keep_before
+                    or (_step(r) == self._keep_before and _evaluation(r))]
             keys = sorted(reader.fieldnames or [])
         # Lightning appends rows in the sorted order of the keys it knows: the kept file is written in that order.
         buf = io.StringIO()
@@ -54,3 +56,9 @@ def _step(row: dict) -> float:
         return float(row.get("step") or 0)
     except ValueError:
         return 0.0
+
+
+def _evaluation(row: dict) -> bool:
+    """A row of a validation (or test): its values are all val/ or test/ metrics (the checkpoint follows them)."""
+    filled = [k for k, v in row.items() if v not in ("", None) and k not in ("step", "epoch")]
+    return bool(filled) and all(k.startswith(("val/", "test/")) for k in filled)

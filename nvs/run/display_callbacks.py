@@ -6,12 +6,15 @@ forward contract and never touch the training or validation steps.
 
 from __future__ import annotations
 
+import sys
+import time
 from pathlib import Path
 from typing import Any
 
 import lightning as L
 import torch
 from lightning.pytorch.callbacks import TQDMProgressBar
+from lightning.pytorch.callbacks.progress.tqdm_progress import Tqdm
 from lightning.pytorch.loggers import TensorBoardLogger, WandbLogger
 from PIL import Image
 
@@ -23,8 +26,40 @@ class StepProgressBar(TQDMProgressBar):
     ``max_epochs``) over the whole run, so its ETA is the run's; validation and test bars are Lightning's own.
 
     A resumed run starts the bar at the step it resumes from; the ETA is measured on the steps of this process
-    (averaged over them, validation time included).
+    (averaged over them, validation time included). The bar shows the logged values without the logger's version.
+    When stdout is not a terminal (a log file) the bar is one line per tenth of the run (the same text, no carriage
+    returns) and the sanity, validation and test bars are off: they would write carriage returns and cursor-up
+    escapes into the file.
     """
+
+    LINES = 10  # lines of a run's progress in a log file
+
+    def __init__(self, *args: Any, **kwargs: Any):
+        super().__init__(*args, **kwargs)
+        self._lines: dict | None = None  # the line mode's state, set at the start of training
+
+    @staticmethod
+    def _terminal() -> bool:
+        return sys.stdout.isatty()
+
+    def init_sanity_tqdm(self) -> Tqdm:
+        return super().init_sanity_tqdm() if self._terminal() else Tqdm(disable=True)
+
+    def init_test_tqdm(self) -> Tqdm:
+        return super().init_test_tqdm() if self._terminal() else Tqdm(disable=True)
+
+    def init_train_tqdm(self) -> Tqdm:
+        return super().init_train_tqdm() if self._terminal() else Tqdm(disable=True)
+
+    def get_metrics(self, trainer: L.Trainer, pl_module: L.LightningModule) -> dict:
+        items = super().get_metrics(trainer, pl_module)
+        items.pop("v_num", None)
+        return items
+
+    def init_validation_tqdm(self) -> Tqdm:
+        if self.trainer.state.fn == "validate" or self._terminal():
+            return super().init_validation_tqdm()
+        return Tqdm(disable=True)
 
     @property
     def train_description(self) -> str:
@@ -37,6 +72,8 @@ class StepProgressBar(TQDMProgressBar):
         bar.reset(total=None if total == float("inf") else int(total))
         bar.initial = bar.n = trainer.global_step
         bar.refresh()
+        if not self._terminal() and not self.is_disabled:
+            self._lines = {"t0": time.perf_counter(), "initial": trainer.global_step, "printed": trainer.global_step}
 
     def on_train_epoch_start(self, trainer: L.Trainer, *_: Any) -> None:
         pass  # one bar for the run: Lightning's resets it at every epoch
@@ -45,12 +82,27 @@ class StepProgressBar(TQDMProgressBar):
                            batch_idx: int) -> None:
         bar = self.train_progress_bar
         step = trainer.global_step
+        if self._lines is not None:
+            self._line(trainer, pl_module, step, bar.total if bar is not None else None)
+            return
         if bar is None or bar.disable or step == bar.n:
             return
         if step % self.refresh_rate == 0 or step == bar.total:
             bar.n = step
             bar.set_postfix(self.get_metrics(trainer, pl_module), refresh=False)
             bar.refresh()
+
+    def _line(self, trainer: L.Trainer, pl_module: L.LightningModule, step: int, total: int | None) -> None:
+        state = self._lines
+        every = max(1, (total or 1000) // self.LINES)
+        if step == state["printed"] or (step - state["printed"] < every and step != total):
+            return
+        state["printed"] = step
+        postfix = ", ".join(f"{k}={Tqdm.format_num(v) if isinstance(v, float) else v}"
+                            for k, v in self.get_metrics(trainer, pl_module).items())
+        line = Tqdm.format_meter(step, total, time.perf_counter() - state["t0"], prefix=self.train_description,
+                                 postfix=postfix or None, initial=state["initial"])
+        print(line, flush=True)
 
     def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         if self.train_progress_bar is not None and not self.train_progress_bar.disable:
@@ -61,8 +113,9 @@ class ValidationImages(L.Callback):
     """At each validation, the module's prediction on a fixed validation batch as one image, logged as ``val/grid``.
 
     Rows are samples; columns are source, target, prediction and predicted depth (grey, near = bright; the column is
-    left out for networks without depth). The batch is the first ``samples`` pairs of the first validation batch
-    (the validation split is not shuffled, so it is the same pairs all run long). Each logger gets the grid its own
+    left out for networks without depth). The batch is ``samples`` pairs spread evenly over the validation split
+    (its pairs are listed model by model, so these are distinct models where the split has enough; the split is not
+    shuffled, so they are the same pairs all run long). Each logger gets the grid its own
     way: TensorBoard ``add_image``, W&B ``log_image``, any other logger with a ``log_dir`` (CSV) a PNG under
     ``<log_dir>/images/``.
 
@@ -81,9 +134,19 @@ class ValidationImages(L.Callback):
         self.batch: dict | None = None
         self.columns = self.COLUMNS
 
+    def on_validation_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if self.batch is not None:
+            return
+        loaders = trainer.val_dataloaders
+        loader = loaders[0] if isinstance(loaders, (list, tuple)) else loaders
+        dataset = getattr(loader, "dataset", None)
+        if dataset is not None and hasattr(dataset, "__len__") and len(dataset) > 0:
+            items = [dataset[i] for i in spread(len(dataset), self.samples)]
+            self.batch = loader.collate_fn(items)
+
     def on_validation_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, batch_idx: int,
                                   dataloader_idx: int = 0) -> None:
-        if self.batch is None and batch_idx == 0 and dataloader_idx == 0:
+        if self.batch is None and batch_idx == 0 and dataloader_idx == 0:  # a split without random access
             n = self.samples
             self.batch = {k: (v[:n].detach().cpu().clone() if torch.is_tensor(v) else list(v[:n]))
                           for k, v in batch.items()}
@@ -116,3 +179,9 @@ class ValidationImages(L.Callback):
             out = Path(logger.log_dir) / "images" / f"val_grid_step{step:07d}.png"
             out.parent.mkdir(parents=True, exist_ok=True)
             Image.fromarray(to_uint8_hwc(grid)).save(out)
+
+
+def spread(n: int, k: int) -> list[int]:
+    """``min(k, n)`` distinct indices in ``range(n)`` spread evenly, the first one 0."""
+    k = min(k, n)
+    return [i * n // k for i in range(k)]

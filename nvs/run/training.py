@@ -29,6 +29,7 @@ from nvs.run.checkpoint_files import read_checkpoint, resume_checkpoint
 from nvs.run.checkpoints import AtomicCheckpointIO
 from nvs.run.config_check import hydra_value
 from nvs.run.csv_log import continue_from
+from nvs.run.loggers import log_run_config
 from nvs.run.precision import Choice
 from nvs.run.quiet import silence_known_noise
 from nvs.run.run_checks import check_batches, check_resume, check_run_config, check_trained, resume_load_error
@@ -58,6 +59,17 @@ def _trainer(cfg: DictConfig, **kwargs) -> L.Trainer:
         cause = err.__cause__ or err
         message = user_message(cause) or f"{cause.__class__.__name__}: {cause}"
         raise UserError(f"config 'trainer': {message}") from None
+
+
+def _short_run(cfg: DictConfig) -> dict:
+    """``log_every_n_steps`` and a step-count ``val_check_interval`` capped at ``max_steps``: a run shorter than
+    either still logs its loss, and validates (and so tests a validation-selected checkpoint) at its last step."""
+    steps, capped = cfg.trainer.get("max_steps"), {}
+    for key in ("log_every_n_steps", "val_check_interval"):
+        every = cfg.trainer.get(key)
+        if isinstance(every, int) and not isinstance(every, bool) and isinstance(steps, int) and 0 < steps < every:
+            capped[key] = steps
+    return capped
 
 
 def run(cfg: DictConfig, out_dir: Path, keep_unstarted: bool = True, existing: frozenset[str] | None = None) -> dict:
@@ -113,8 +125,12 @@ def _run(cfg: DictConfig, out_dir: Path, throughput: Throughput) -> dict:
         if resume is not None and isinstance(lg, L.pytorch.loggers.CSVLogger) and is_global_zero():
             continue_from(lg, resume[1])
     interruption = Interruption(ckpt_dir / "last.ckpt", resume_command(out_dir))
-    trainer = _trainer(cfg, callbacks=callbacks + [throughput, interruption], logger=loggers or False,
-                       plugins=[AtomicCheckpointIO()], precision=choice.precision)
+    carried = [throughput, interruption]
+    if loggers:  # the learning rate of each parameter group at every logged step (it needs a logger)
+        carried.append(L.pytorch.callbacks.LearningRateMonitor(logging_interval="step"))
+    trainer = _trainer(cfg, callbacks=callbacks + carried, logger=loggers or False,
+                       plugins=[AtomicCheckpointIO()], precision=choice.precision, **_short_run(cfg))
+    log_run_config(loggers, cfg)
     if not fast_dev_run:
         check_batches(int(cfg.data.loader.batch_size), len(datamodule.dataset("train")), trainer.world_size)
     interruption.install()
@@ -168,6 +184,9 @@ def _fit_and_test(cfg: DictConfig, out_dir: Path, trainer: L.Trainer, module, da
         result["eval_ms_per_image"] = 1000 * (time.perf_counter() - t0) / n  # whole test loop, metrics included
         result["eval_forward_ms_per_image"] = module.test_forward_ms_per_image()
         result["checkpoint"] = ckpt
+        # which weights the test metrics are of: no validation ran (limit_val_batches=0, ...) means the final ones
+        result["tested_weights"] = ("best validation checkpoint" if ckpt
+                                    else f"final weights (step {trainer.global_step})")
         result["test"] = module.test_summary()
         if trainer.is_global_zero:  # the rows are gathered from every rank: one writer
             write_per_image(out_dir / "test_per_image.csv", module.test_rows)

@@ -39,6 +39,7 @@ from nvs.sweep.export import export_jobs, export_root
 from nvs.sweep.jobs import Job, Status, plan, prepare_job_dir, refresh, to_launch
 from nvs.sweep.launch import Launch, available_cores, interrupt_on_signal, launch_row, multirun_command
 from nvs.sweep.lock import JobLocks
+from nvs.sweep.progress import Progress
 from nvs.sweep.study import load_study
 from nvs.sweep.tables import write_results
 from nvs.sweep.testset import check_launch
@@ -155,16 +156,21 @@ def run(argv: list[str] | None = None) -> int:
         launch = Launch.local(args.jobs, args.threads, extra)
         print(f"[sweep] {launch.jobs} job(s) at a time x {launch.threads} thread(s), {available_cores()} cores",
               file=sys.stderr)
+        order = [j for row in study.rows for j in launching if j.row is row]  # the order they run in
+        progress = Progress(order, skipped=len(jobs) - len(order))
+        progress.begin()
         with JobLocks(root) as locks:
             for row in study.rows:
-                row_jobs = _lock(locks, [j for j in launching if j.row is row], args.force)
+                row_jobs = _lock(locks, [j for j in order if j.row is row], args.force)
                 if not row_jobs:
                     continue
                 for j in row_jobs:
                     prepare_job_dir(j, root, force=args.force)
                 # the child holds the row's locks too: a job stays locked until its training process has ended
-                launch_row(study, row_jobs, root, launch, extra, keep_fds=locks.fds(j.dir.name for j in row_jobs))
+                launch_row(study, row_jobs, root, launch, extra, keep_fds=locks.fds(j.dir.name for j in row_jobs),
+                           progress=progress)
                 locks.release()
+        progress.end()
         jobs = plan(study, root, extra, exported)
     if args.export_jobs:
         dest = export_root(args.results, study.scale)

@@ -9,6 +9,7 @@ own ``stderr.log``.
 from __future__ import annotations
 
 import collections
+import contextlib
 import ctypes
 import os
 import re
@@ -25,6 +26,7 @@ from nvs.core.errors import UserError
 from nvs.run.config_check import hydra_value
 from nvs.sweep import recorder
 from nvs.sweep.jobs import Job, Status, is_hydra, refresh, row_overrides
+from nvs.sweep.progress import Progress
 from nvs.sweep.recorder import FAILED, STDERR
 from nvs.sweep.study import Row, Study
 
@@ -141,10 +143,11 @@ def _fail(job: Job, error: str) -> None:
 
 
 def launch_row(study: Study, jobs: list[Job], root: Path, launch: Launch, extra: tuple[str, ...] = (),
-               keep_fds: tuple[int, ...] = ()) -> list[Job]:
+               keep_fds: tuple[int, ...] = (), progress: Progress | None = None) -> list[Job]:
     """Launch one row's pending jobs until each has run once; returns them with their new status.
 
-    ``keep_fds``: the jobs' lock descriptors, inherited by the training process (nvs.sweep.lock)."""
+    ``keep_fds``: the jobs' lock descriptors, inherited by the training process (nvs.sweep.lock); ``progress``
+    (nvs.sweep.progress) reports each job's start and end while the multirun runs."""
     row = jobs[0].row
     env = dict(os.environ, OMP_NUM_THREADS=str(launch.threads), MKL_NUM_THREADS=str(launch.threads),
                PYTHONPATH=os.pathsep.join([str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])]))
@@ -152,7 +155,8 @@ def launch_row(study: Study, jobs: list[Job], root: Path, launch: Launch, extra:
     while pending:
         cmd = multirun_command(study, row, [j.seed for j in pending], root, launch, extra)
         print(f"[sweep] {row.name}: seeds {[j.seed for j in pending]}\n[sweep] $ {shlex.join(cmd)}", file=sys.stderr)
-        rc, tail = run_streaming(cmd, env, keep_fds)
+        with progress.watch(pending) if progress else contextlib.nullcontext():
+            rc, tail = run_streaming(cmd, env, keep_fds)
         started = [j for j in pending if (j.dir / STDERR).exists() or (j.dir / "metrics.json").exists()]
         for j in pending:
             refresh(j)
@@ -165,6 +169,8 @@ def launch_row(study: Study, jobs: list[Job], root: Path, launch: Launch, extra:
             # Nothing ran (the multirun failed before its first job, e.g. a config error): all of them failed.
             for j in pending:
                 _fail(j, last_error_line(tail) or f"multirun exit code {rc}")
+        if progress:
+            progress.settle(pending)
         # Jobs the multirun never reached (an earlier job ended the process) get their own turn.
         pending = [j for j in pending if j not in started and j.status != Status.FAILED]
     return jobs

@@ -8,13 +8,14 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from nvs.run.cli import exits_cleanly
+from nvs.run.compose import CONF_DIR
 from nvs.run.config_check import check_cli_overrides
 from nvs.run.quiet import silence_known_noise
 from nvs.viewer.build import build_session
 from nvs.viewer.server import build_app, check_address, serve
 
 
-@hydra.main(version_base="1.3", config_path="../../conf", config_name="viewer")
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="viewer")
 @exits_cleanly
 def main(cfg: DictConfig) -> None:
     check_cli_overrides("viewer", HydraConfig.get().overrides.task)

@@ -27,6 +27,7 @@ from nvs.core.atomic import write_json
 from nvs.core.errors import UserError
 from nvs.core.provenance import header
 from nvs.run.cli import exits_cleanly
+from nvs.run.compose import CONF_DIR
 from nvs.viewer.process import ViewerProcess
 
 def _triangle(i: int, period: int) -> float:
@@ -85,7 +86,7 @@ def measure(url: str, requests: int, warmup: int) -> dict:
     }
 
 
-@hydra.main(version_base="1.3", config_path="../../conf", config_name="viewer")
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="viewer")
 @exits_cleanly
 def main(cfg: DictConfig) -> None:
     overrides = [o for o in HydraConfig.get().overrides.task if not o.startswith(("load.", "port="))]

@@ -20,7 +20,7 @@ import numpy as np
 import yaml
 
 from nvs.core.errors import UserError
-from nvs.viewer.controls import Axis, ObjectControls, SceneControls
+from nvs.viewer.controls import Axis, ObjectControls, SceneControls, check_values
 
 Controls = ObjectControls | SceneControls
 PATHS = ("orbit", "forward", "custom")
@@ -107,7 +107,13 @@ def camera_path(name: str, controls: Controls, meta: dict[str, float], frames: i
     if name == "custom":
         if not custom:
             raise UserError("path=custom needs custom=<a YAML or JSON file of poses>")
-        return interpolate(read_keyframes(custom, controls), frames)
+        keyframes = read_keyframes(custom, controls)
+        for i, values in enumerate(keyframes):  # before any frame is rendered (the frames between stay inside)
+            try:
+                check_values(controls.axes, values)
+            except UserError as err:
+                raise UserError(f"{custom}: pose {i}: {err}") from None
+        return interpolate(keyframes, frames)
     if frames is None:
         raise UserError(f"path={name} needs frames=<N>")
     if name == "orbit":

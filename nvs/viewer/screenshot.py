@@ -13,8 +13,8 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from nvs.core.errors import UserError
-
 from nvs.run.cli import exits_cleanly
+from nvs.run.compose import CONF_DIR
 from nvs.viewer.process import ViewerProcess
 
 CHROMIUM = Path("/usr/bin/chromium")
@@ -47,7 +47,7 @@ def take(url: str, out: Path, source: int, drag: tuple[float, float]) -> None:
         browser.close()
 
 
-@hydra.main(version_base="1.3", config_path="../../conf", config_name="viewer")
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="viewer")
 @exits_cleanly
 def main(cfg: DictConfig) -> None:
     overrides = [o for o in HydraConfig.get().overrides.task if not o.startswith(("screenshot.", "port="))]

@@ -1,4 +1,4 @@
-"""WarpRefine: predict the target depth, warp the source by it, refine the warped image. ~30k parameters.
+"""WarpRefine: predict the target depth, warp the source by it, refine the warped image. 7,604 parameters.
 
 A network of nvs's forward contract (nvs/core/types.py): ``forward(batch, needs) -> outputs`` with
     rgb        (B,3,H,W) in [0,1]      the prediction
