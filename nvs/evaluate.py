@@ -12,19 +12,15 @@ from pathlib import Path
 import hydra
 import lightning as L
 from hydra.core.hydra_config import HydraConfig
-from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from nvs.core.errors import UserError, user_message
-from nvs.core.provenance import device_name, git_sha
-from nvs.run.build import build_data, parameter_count
+from nvs.run.build import build_data
 from nvs.run.checkpoints import restore_module, restore_run_config
-from nvs.run.cli import exits_cleanly
-from nvs.run.config_check import check_cli_overrides
+from nvs.run.cli import before_hydra, exits_cleanly, hydra_task
 from nvs.run.precision import Choice, choose
-from nvs.run.quiet import silence_known_noise
-from nvs.run.artifacts import (check_creatable, check_writable, is_global_zero, remove_unstarted_run, run_dir_of,
-                           summary_line, write_metrics, write_per_image)
+from nvs.run.artifacts import (check_writable, is_global_zero, run_record, summary_line, test_record, write_metrics,
+                               write_per_image)
 from nvs.run.compose import CONF_DIR
 
 
@@ -57,21 +53,8 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
     t0 = time.perf_counter()
     trainer.test(module, datamodule=datamodule, verbose=False)
     elapsed = time.perf_counter() - t0
-    result = {
-        "model": run.model.get("name"),
-        "data": run.data.get("name"),
-        "image_size": run.data.size,
-        "checkpoint": cfg.ckpt_path,
-        "seed": int(run.seed),
-        "params": parameter_count(module.net),
-        "device": device_name(module.device),
-        "precision": str(precision),
-        "precision_choice": choice.record(),
-        "git_sha": git_sha(),
-        "eval_ms_per_image": 1000 * elapsed / max(len(module.test_rows), 1),
-        "eval_forward_ms_per_image": module.test_forward_ms_per_image(),
-        "test": module.test_summary(),
-    }
+    tested = f"checkpoint {cfg.ckpt_path}" if cfg.ckpt_path else "a reference model (nothing trained)"
+    result = {**run_record(module, run, choice), **test_record(module, elapsed, cfg.ckpt_path, tested)}
     if trainer.is_global_zero:  # the rows are gathered from every rank: one writer
         write_per_image(out_dir / "test_per_image.csv", module.test_rows)
         write_metrics(out_dir / "metrics.json", result)
@@ -95,8 +78,8 @@ def check_composes(argv: list[str]) -> None:
         return
     from hydra.errors import HydraException
 
+    from nvs.models.reference import REFERENCE_MODELS
     from nvs.run.compose import compose_raw
-    from nvs.run.finished import REFERENCE_MODELS
 
     try:
         compose_raw("evaluate", argv)
@@ -132,17 +115,10 @@ def evaluation_precision(cfg: DictConfig, run: DictConfig) -> Choice:
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="evaluate")
 @exits_cleanly
 def main(cfg: DictConfig) -> None:
-    run_dir = Path(HydraConfig.get().runtime.output_dir)
-    try:
-        check_cli_overrides("evaluate", HydraConfig.get().overrides.task)
-        silence_known_noise()
+    # a failed evaluation leaves no run directory behind (a multirun job's stays: it is reported at the end)
+    with hydra_task("evaluate"):
         out_dir = Path(cfg.out_dir)
         result = evaluate(cfg, out_dir)
-    except BaseException:
-        # A failed evaluation leaves no run directory behind (a multirun job's stays: it is reported at the end).
-        if HydraConfig.get().mode == RunMode.RUN and is_global_zero():
-            remove_unstarted_run(run_dir, HydraConfig.get().job.name)
-        raise
     if not is_global_zero():
         return
     print(summary_line(result["test"]))
@@ -150,14 +126,7 @@ def main(cfg: DictConfig) -> None:
 
 
 def main_cli() -> None:
-    import sys
-
-    try:
-        check_creatable(run_dir_of(sys.argv[1:], "evaluate"))  # Hydra creates it before main(), with a traceback
-        check_composes(sys.argv[1:])
-    except UserError as err:
-        print(f"error: {err}", file=sys.stderr)
-        sys.exit(2)
+    before_hydra("evaluate", check_composes)
     main()
 
 

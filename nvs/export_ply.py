@@ -11,10 +11,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from nvs.core.errors import UserError
 from nvs.report.pointcloud import write_ply
-from nvs.run.cli import exits_cleanly
+from nvs.run.cli import exits_cleanly, hydra_task
 from nvs.run.compose import CONF_DIR
-from nvs.run.config_check import check_cli_overrides
-from nvs.run.quiet import silence_known_noise
 from nvs.viewer.build import build_session, pick_source, source_ids
 from nvs.viewer.cloud import file_stem, view_points
 
@@ -38,9 +36,8 @@ def export(cfg: DictConfig) -> Path:
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="export_ply")
 @exits_cleanly
 def main(cfg: DictConfig) -> None:
-    check_cli_overrides("export_ply", HydraConfig.get().overrides.task)
-    silence_known_noise()
-    out = export(cfg)
+    with hydra_task("export_ply"):
+        out = export(cfg)
     print(f"wrote {out}")
 
 

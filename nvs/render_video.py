@@ -13,10 +13,8 @@ from omegaconf import DictConfig
 
 from nvs.core.errors import UserError
 from nvs.run.artifacts import is_global_zero, remove_unstarted_run
-from nvs.run.cli import exits_cleanly
+from nvs.run.cli import exits_cleanly, hydra_task
 from nvs.run.compose import CONF_DIR
-from nvs.run.config_check import check_cli_overrides
-from nvs.run.quiet import silence_known_noise
 from nvs.viewer.build import build_session, pick_source, source_ids
 from nvs.viewer.cloud import file_stem
 from nvs.viewer.controls import check_values
@@ -54,9 +52,8 @@ def videos_dir(ckpt_path: str | Path) -> Path:
 def main(cfg: DictConfig) -> None:
     hydra_dir, job = Path(HydraConfig.get().runtime.output_dir), HydraConfig.get().job.name
     try:
-        check_cli_overrides("render_video", HydraConfig.get().overrides.task)
-        silence_known_noise()
-        written = render(cfg)
+        with hydra_task("render_video"):
+            written = render(cfg)
     finally:
         # Hydra's own folder holds only its record of the command when the videos went beside the checkpoint (or
         # nothing was written): it goes, rather than a folder per video to clean up by hand.

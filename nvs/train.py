@@ -11,25 +11,16 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from nvs.core.errors import UserError
-from nvs.run.cli import exits_cleanly
+from nvs.run.artifacts import existing_files, is_global_zero, summary_line
+from nvs.run.cli import before_hydra, exits_cleanly, hydra_task
 from nvs.run.compose import CONF_DIR
-from nvs.run.config_check import check_cli_overrides, trainer_arguments
-from nvs.run.training import job_name, run
-from nvs.run.artifacts import (check_creatable, existing_files, is_global_zero, remove_unstarted_run, run_dir_of,
-                               summary_line)
+from nvs.run.config_check import trainer_arguments
+from nvs.run.training import run
 
 
 def main_cli() -> None:
     """``python -m nvs.train``: every Lightning Trainer argument is ``trainer.<arg>=...`` (nvs.run.config_check)."""
-    import sys
-
-    try:
-        sys.argv[1:] = trainer_arguments(sys.argv[1:])
-        check_creatable(run_dir_of(sys.argv[1:], "train"))  # Hydra creates it before main(), with a traceback
-        check_composes(sys.argv[1:])
-    except UserError as err:
-        print(f"error: {err}", file=sys.stderr)
-        sys.exit(2)
+    before_hydra("train", check_composes, rewrite=trainer_arguments)
     main()
 
 
@@ -63,13 +54,8 @@ def main(cfg: DictConfig) -> None:
     # A run that ends before its first step leaves no directory behind (a multirun job's stays: it is reported).
     keep = HydraConfig.get().mode != RunMode.RUN
     existing = existing_files(out_dir)  # the user's files there (and Hydra's, written before main): never removed
-    try:
-        check_cli_overrides("train", HydraConfig.get().overrides.task)
+    with hydra_task("train", existing):
         OmegaConf.resolve(cfg)
-    except BaseException:
-        if not keep and is_global_zero():
-            remove_unstarted_run(out_dir, job_name(), existing)
-        raise
     result = run(cfg, out_dir, keep_unstarted=keep, existing=existing)
     if not is_global_zero():
         return

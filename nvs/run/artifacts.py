@@ -25,6 +25,27 @@ def write_metrics(path: str | Path, payload: dict) -> None:
     write_json(path, payload)
 
 
+def run_record(module, run, choice, training: dict | None = None) -> dict:
+    """The head of ``metrics.json``, one schema for ``nvs.train`` and ``nvs.evaluate``: the model, data, size and
+    seed, a trained run's ``training`` keys (steps, wall time, throughput, overrides), then the network's size and
+    where and how it ran. ``run``: the run's config; ``choice``: its ``nvs.run.precision.Choice``."""
+    from nvs.core.provenance import device_name, git_sha
+    from nvs.run.build import parameter_count
+
+    return {"model": module.model_name, "data": run.data.get("name"), "image_size": run.data.size,
+            "seed": int(run.seed), **(training or {}), "params": parameter_count(module.net),
+            "device": device_name(module.device), "precision": str(choice.precision),
+            "precision_choice": choice.record(), "git_sha": git_sha()}
+
+
+def test_record(module, test_s: float, checkpoint: str | None, tested_weights: str) -> dict:
+    """The test part of ``metrics.json``: time per image (the whole test loop, and the forward alone), which weights
+    were tested, and the mean of every per-image metric."""
+    return {"eval_ms_per_image": 1000 * test_s / max(len(module.test_rows), 1),
+            "eval_forward_ms_per_image": module.test_forward_ms_per_image(), "checkpoint": checkpoint,
+            "tested_weights": tested_weights, "test": module.test_summary()}
+
+
 def summary_line(test: dict) -> str:
     """One printed line of the mean test metrics."""
     return "test: " + ", ".join(f"{k}={v:.4f}" for k, v in test.items() if isinstance(v, float))

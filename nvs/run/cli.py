@@ -6,8 +6,10 @@ Exit codes: 2 for a problem the user can fix (data, config, checkpoint, a write 
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import sys
+from pathlib import Path
 
 from nvs.core.errors import Interrupted, user_message
 
@@ -47,3 +49,46 @@ def exits_cleanly(main):
             sys.exit(2)
 
     return wrapper
+
+
+def before_hydra(task: str, *checks, rewrite=None) -> None:
+    """What a Hydra command checks before ``main()``: Hydra creates the run directory and composes the config with
+    tracebacks of its own, so the directory must be creatable and ``checks`` (each ``check(argv)``) must pass first;
+    ``rewrite(argv) -> argv`` runs before them. A UserError is one line on stderr and exit 2."""
+    from nvs.core.errors import UserError
+    from nvs.run.artifacts import check_creatable, run_dir_of
+
+    try:
+        if rewrite is not None:
+            sys.argv[1:] = rewrite(sys.argv[1:])
+        check_creatable(run_dir_of(sys.argv[1:], task))
+        for check in checks:
+            check(sys.argv[1:])
+    except UserError as err:
+        print(f"error: {err}", file=sys.stderr)
+        sys.exit(2)
+
+
+@contextlib.contextmanager
+def hydra_task(task: str, existing: frozenset[str] = frozenset()):
+    """Inside a Hydra command's ``main()``: its command-line overrides checked (``nvs.run.config_check``), the known
+    third-party noise silenced, and, when the block fails, the run directory Hydra made removed, only what this run
+    wrote in it (``existing``: what was there before; a multirun job's directory stays: the multirun reports it).
+    Yields the run directory."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    from nvs.run.artifacts import is_global_zero, remove_unstarted_run
+    from nvs.run.config_check import check_cli_overrides
+    from nvs.run.quiet import silence_known_noise
+
+    hc = HydraConfig.get()
+    out_dir = Path(hc.runtime.output_dir)
+    try:
+        check_cli_overrides(task, hc.overrides.task)
+        silence_known_noise()
+        yield out_dir
+    except BaseException:
+        if hc.mode == RunMode.RUN and is_global_zero():
+            remove_unstarted_run(out_dir, hc.job.name, existing)
+        raise

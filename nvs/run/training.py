@@ -21,10 +21,11 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig
 
 from nvs.core.errors import Interrupted, UserError, user_message
-from nvs.core.provenance import device_name, git_sha
-from nvs.run.artifacts import (check_writable, existing_files, is_global_zero, remove_unstarted_run, write_metrics,
-                               write_per_image)
-from nvs.run.build import build_data, build_module, choose_precision, parameter_count
+from nvs.data.datamodule import NVSDataModule
+from nvs.module.lightning_module import NVSModule
+from nvs.run.artifacts import (check_writable, existing_files, is_global_zero, remove_unstarted_run, run_record,
+                               test_record, write_metrics, write_per_image)
+from nvs.run.build import build_data, build_module, choose_precision
 from nvs.run.checkpoint_files import read_checkpoint, resume_checkpoint
 from nvs.run.checkpoints import AtomicCheckpointIO
 from nvs.run.config_check import hydra_value
@@ -135,8 +136,9 @@ def _run(cfg: DictConfig, out_dir: Path, throughput: Throughput) -> dict:
         check_batches(int(cfg.data.loader.batch_size), len(datamodule.dataset("train")), trainer.world_size)
     interruption.install()
     try:
-        return _fit_and_test(cfg, out_dir, trainer, module, datamodule, callbacks, throughput, choice, testing,
-                             resume[0] if resume else None)
+        return _fit_and_test(cfg, out_dir, trainer, module, datamodule, checkpoints=checkpoint_cbs,
+                             throughput=throughput, choice=choice, testing=testing,
+                             resume=resume[0] if resume else None)
     except SIGTERMException:  # Lightning's own stop on SIGTERM (inside validation); last.ckpt saved on the way
         raise Interrupted(signal.SIGTERM, interruption.message(interruption.last.is_file(), trainer.global_step)) \
             from None
@@ -144,8 +146,11 @@ def _run(cfg: DictConfig, out_dir: Path, throughput: Throughput) -> dict:
         interruption.restore()
 
 
-def _fit_and_test(cfg: DictConfig, out_dir: Path, trainer: L.Trainer, module, datamodule, callbacks: list,
-                  throughput: Throughput, choice: Choice, testing: bool, resume: str | None) -> dict:
+def _fit_and_test(cfg: DictConfig, out_dir: Path, trainer: L.Trainer, module: NVSModule, datamodule: NVSDataModule,
+                  *, checkpoints: list[L.pytorch.callbacks.ModelCheckpoint], throughput: Throughput, choice: Choice,
+                  testing: bool, resume: str | None) -> dict:
+    """Fit (from ``resume``, a checkpoint path, or from scratch), then test the best checkpoint of ``checkpoints``
+    when ``testing``; write and return the run's metrics.json record."""
     check_resume(cfg, resume)
     try:
         trainer.fit(module, datamodule=datamodule, ckpt_path=resume)
@@ -155,39 +160,24 @@ def _fit_and_test(cfg: DictConfig, out_dir: Path, trainer: L.Trainer, module, da
             raise
         raise mismatch from None
     check_trained(int(trainer.global_step))
-    result = {
-        "model": module.model_name,
-        "data": cfg.data.name,
-        "image_size": cfg.data.size,
-        "seed": int(cfg.seed),
+    result = run_record(module, cfg, choice, training={
         "steps": int(trainer.global_step),
         "train_wall_s": throughput.train_s,
         "train_samples_per_s": throughput.samples / throughput.train_s if throughput.train_s else None,
         "train_step_ms": throughput.step_ms(),
-        "params": parameter_count(module.net),
-        "device": device_name(module.device),
-        "precision": choice.precision,
-        "precision_choice": choice.record(),
-        "git_sha": git_sha(),
-        "overrides": list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else [],
-    }
+        "overrides": list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []})
     if testing:
         ckpt = None
-        for cb in callbacks:
-            if isinstance(cb, L.pytorch.callbacks.ModelCheckpoint) and cb.best_model_path:
+        for cb in checkpoints:
+            if cb.best_model_path:
                 ckpt = cb.best_model_path
         if ckpt:
             read_checkpoint(ckpt, mmap=True)  # whole and its hash matching, as every tool reads it
         t0 = time.perf_counter()
         trainer.test(module, datamodule=datamodule, ckpt_path=ckpt, verbose=False)
-        n = max(len(module.test_rows), 1)
-        result["eval_ms_per_image"] = 1000 * (time.perf_counter() - t0) / n  # whole test loop, metrics included
-        result["eval_forward_ms_per_image"] = module.test_forward_ms_per_image()
-        result["checkpoint"] = ckpt
         # which weights the test metrics are of: no validation ran (limit_val_batches=0, ...) means the final ones
-        result["tested_weights"] = ("best validation checkpoint" if ckpt
-                                    else f"final weights (step {trainer.global_step})")
-        result["test"] = module.test_summary()
+        tested = "best validation checkpoint" if ckpt else f"final weights (step {trainer.global_step})"
+        result.update(test_record(module, time.perf_counter() - t0, ckpt, tested))
         if trainer.is_global_zero:  # the rows are gathered from every rank: one writer
             write_per_image(out_dir / "test_per_image.csv", module.test_rows)
     if trainer.is_global_zero:
