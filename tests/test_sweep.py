@@ -13,6 +13,7 @@ import torch
 from omegaconf import OmegaConf
 
 from nvs import pareto, sweep
+from nvs.report import pareto as pareto_lib
 from tests.conftest import compose_train
 
 REPO = Path(__file__).resolve().parents[1]
@@ -419,7 +420,7 @@ def test_pareto_front_by_hand():
     cost = [1.0, 2.0, 3.0, 2.5, 1.0]
     err = [0.5, 0.3, 0.1, 0.4, 0.6]
     # (2.5, 0.4) is beaten by (2.0, 0.3); (1.0, 0.6) by (1.0, 0.5).
-    assert pareto.pareto_front(cost, err) == [True, True, True, False, False]
+    assert pareto_lib.pareto_front(cost, err) == [True, True, True, False, False]
 
 
 def test_pareto_report_from_sweep_csv(fabricated, tmp_path):
@@ -446,7 +447,7 @@ def test_pareto_never_puts_two_scales_on_one_front(fabricated, tmp_path):
         for r in rows:
             long_dir = str(Path(r["run_dir"]).parent.with_name("64px_100steps") / Path(r["run_dir"]).name)
             w.writerow(r | {"steps": "100", "run_dir": long_dir, "train_wall_s": "1.0"})
-    agg = pareto.load_rows([results / "fab.csv", other])
+    agg = pareto_lib.load_rows([results / "fab.csv", other])
     assert set(agg["data"]) == {"chairs @ 64²/10 steps", "chairs @ 64²/100 steps"}
     # each scale has its own front: the fast long run does not knock the short runs off theirs
     short = agg[agg["data"] == "chairs @ 64²/10 steps"]
@@ -457,8 +458,8 @@ def test_pareto_never_puts_two_scales_on_one_front(fabricated, tmp_path):
         w.writeheader()
         for r in rows:
             w.writerow(r | {"steps": "7", "stop": "converged", "run_dir": r["run_dir"] + "_ruled"})
-    assert set(pareto.load_rows([other])["data"]) == {"chairs"}  # one scale: no suffix
-    mixed = pareto.load_rows([results / "fab.csv", other])
+    assert set(pareto_lib.load_rows([other])["data"]) == {"chairs"}  # one scale: no suffix
+    mixed = pareto_lib.load_rows([results / "fab.csv", other])
     assert set(mixed["data"]) == {"chairs @ 64²/10 steps", "chairs @ 64²/10 steps at most"}
 
 
@@ -466,7 +467,7 @@ def test_pareto_reads_the_paper_studies_by_default(tmp_path):
     header = ",".join(sweep.CSV_COLUMNS) + "\n"
     for name in ("ablation", "skip", "comparison_drive"):
         (tmp_path / f"{name}.csv").write_text(header)
-    assert [p.name for p in pareto.default_csvs(tmp_path)] == ["ablation.csv", "comparison_drive.csv"]
+    assert [p.name for p in pareto_lib.default_csvs(tmp_path)] == ["ablation.csv", "comparison_drive.csv"]
 
 
 def test_unproject_inverts_the_projection():
