@@ -97,3 +97,30 @@ def test_a_reference_model_is_built_from_the_command_line_without_weights(tmp_pa
         restore_run_config(_eval_cfg(tmp_path, "model=copy_source"))
     with pytest.raises(UserError, match="give ckpt_path="):
         restore_run_config(_eval_cfg(tmp_path))
+
+
+def test_a_checkpoint_of_the_flat_layout_restores(saved, tmp_path):
+    # A checkpoint written before the layer folders names nvs.losses.ReconLoss, nvs.models...: its config is read as
+    # today's (nvs.core.legacy), and the network comes back with the same weights.
+    from nvs.core.legacy import MOVED
+
+    path, module = saved
+    ckpt = torch.load(path, weights_only=False)
+    old = {new: old for old, new in MOVED.items()}
+
+    def flat(node):
+        if isinstance(node, dict):
+            return {k: (old.get(v.rpartition(".")[0], v.rpartition(".")[0]) + "." + v.rpartition(".")[2]
+                        if k == "_target_" and isinstance(v, str) and v.startswith("nvs.") else flat(v))
+                    for k, v in node.items()}
+        return [flat(v) for v in node] if isinstance(node, list) else node
+
+    ckpt["nvs_config"] = flat(ckpt["nvs_config"])
+    assert ckpt["nvs_config"]["loss"]["recon"]["_target_"] == "nvs.losses.ReconLoss"
+    legacy_path = tmp_path / "flat.ckpt"
+    torch.save(ckpt, legacy_path)
+    run, loaded = restore_run_config(_eval_cfg(tmp_path, f"ckpt_path={legacy_path}"))
+    restored = restore_module(run, loaded)
+    assert run.loss.recon._target_ == "nvs.losses.terms.ReconLoss"
+    for (k, a), (_, b) in zip(module.net.state_dict().items(), restored.net.state_dict().items()):
+        assert torch.equal(a, b), k
