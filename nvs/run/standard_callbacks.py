@@ -13,6 +13,7 @@ import torch
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from nvs.core.errors import Interrupted
+from nvs.run.checkpoints import validation_follows
 
 
 class Throughput(L.Callback):
@@ -61,12 +62,14 @@ class Throughput(L.Callback):
 class Interruption(L.Callback):
     """SIGINT / SIGTERM: save ``last.ckpt`` and stop with :class:`Interrupted` (one line: where, how to resume).
 
-    During training the signal is acted on at the end of the current step (or at once inside validation, where
-    Lightning itself stops on SIGTERM); outside training it interrupts at once.
+    During training the signal is acted on at the end of the current step, or, when a validation is due after that
+    step, at the end of that validation: the saved step then has its validation row and a resume neither skips nor
+    repeats it (Lightning's own SIGTERM handler, which stops inside validation, is replaced). Outside training, or
+    at a second signal, it interrupts at once.
 
     Under DDP every rank stops at the same step, whichever ranks got the signal: the handler only records it, and
-    each step ends with one all-reduce of that record (Lightning's own SIGTERM handler, which broadcasts from inside
-    the handler and so pairs with whatever collective the other rank is in, is replaced). A rank interrupted outside
+    each step ends with one all-reduce of that record (Lightning's handler also broadcasts from inside the handler,
+    pairing with whatever collective the other rank is in: both ranks then wait forever). A rank interrupted outside
     the steps takes the ranks it launched with it, instead of leaving them waiting in a collective.
     """
 
@@ -74,6 +77,7 @@ class Interruption(L.Callback):
         self.last, self.resume = last, resume
         self.signum: int | None = None
         self.fitting = False
+        self._after_validation = False  # the agreed stop waits for the validation of its step
         self._previous: dict[int, object] = {}
 
     def install(self) -> None:
@@ -91,11 +95,10 @@ class Interruption(L.Callback):
         if not self.fitting or not first:  # outside a step (or a second Ctrl-C): at once
             raise Interrupted(signum, self.message(saved=self.last.is_file(), step=None))
 
-    def _own_handlers(self, trainer) -> None:
-        """Under DDP, this callback's handlers alone (Lightning installs its own SIGTERM handler before fitting)."""
-        if trainer.world_size > 1:
-            for s in (signal.SIGINT, signal.SIGTERM):
-                signal.signal(s, self._handler)
+    def _own_handlers(self) -> None:
+        """This callback's handlers alone (Lightning installs its own SIGTERM handler before fitting)."""
+        for s in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(s, self._handler)
 
     def _agreed_signal(self, trainer) -> int | None:
         """The signal any rank received (every rank calls this at the same step: one all-reduce under DDP)."""
@@ -115,7 +118,7 @@ class Interruption(L.Callback):
         return f"interrupted by {name}{at}: saved {self.last}; resume with: {self.resume}"
 
     def _stop(self, trainer, in_step: bool = False) -> None:
-        self.fitting = False
+        self.fitting = self._after_validation = False
         try:  # this step's row of the training curve: Lightning logs it after the hook this stop leaves
             if in_step:
                 trainer._logger_connector.update_train_step_metrics()
@@ -141,20 +144,27 @@ class Interruption(L.Callback):
         return True
 
     def on_sanity_check_start(self, trainer, pl_module):
-        self._own_handlers(trainer)
+        self._own_handlers()
 
     def on_train_start(self, trainer, pl_module):
-        self._own_handlers(trainer)
+        self._own_handlers()
         self.fitting = True
         if self._agreed_signal(trainer) is not None:
             self._stop(trainer)
 
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        if self._after_validation:  # the previous step's validation (and its checkpoints) done
+            self._stop(trainer)
+
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
         if self._agreed_signal(trainer) is not None:
-            self._stop(trainer, in_step=True)
+            if validation_follows(trainer):  # the same answer on every rank
+                self._after_validation = True
+            else:
+                self._stop(trainer, in_step=True)
 
     def on_train_end(self, trainer, pl_module):
-        if self._agreed_signal(trainer) is not None:
+        if self._after_validation or self._agreed_signal(trainer) is not None:
             self._stop(trainer)
         self.fitting = False
 
