@@ -169,7 +169,8 @@ class Interruption(L.Callback):
         self.fitting = False
 
     def on_exception(self, trainer, pl_module, exception):
-        # Lightning stops on SIGTERM inside validation with its own SIGTERMException: the weights are still here.
+        # Lightning's SIGTERMException (its handler, in place until this callback's replace it): the weights are
+        # still here.
         if isinstance(exception, SIGTERMException) and self.signum is not None and self.fitting:
             self.fitting = False
             self._save(trainer)
