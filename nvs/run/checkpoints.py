@@ -119,7 +119,7 @@ class ModelCheckpoint(_LightningModelCheckpoint):
         n = self.last_every_n_steps
         # A validation due after this step saves last itself, after it (a checkpoint saved before it would resume
         # past the validation without running it).
-        if n and trainer.global_step % n == 0 and not _validation_follows(trainer):
+        if n and trainer.global_step % n == 0 and not validation_follows(trainer):
             self._save_last_now(trainer)
 
     def on_validation_end(self, trainer, pl_module) -> None:
@@ -159,7 +159,7 @@ def _moved(state: dict, old: str, new: str) -> dict:
     return state
 
 
-def _validation_follows(trainer) -> bool:
+def validation_follows(trainer) -> bool:
     """Whether Lightning validates right after the current training step (its own rule, as the loop applies it)."""
     loop = trainer.fit_loop
     try:

@@ -34,7 +34,10 @@ def exits_cleanly(main):
         try:
             return main(*args, **kwargs)
         except Interrupted as sig:
-            print(sig.message, file=sys.stderr)
+            from nvs.run.artifacts import is_global_zero
+
+            if is_global_zero():  # under DDP every rank stops, one prints how to resume
+                print(sig.message, file=sys.stderr)
             sys.exit(128 + sig.signum)
         except Exception as err:
             message = user_message(err)

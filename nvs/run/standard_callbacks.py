@@ -13,6 +13,7 @@ import torch
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from nvs.core.errors import Interrupted
+from nvs.run.checkpoints import validation_follows
 
 
 class Throughput(L.Callback):
@@ -61,14 +62,22 @@ class Throughput(L.Callback):
 class Interruption(L.Callback):
     """SIGINT / SIGTERM: save ``last.ckpt`` and stop with :class:`Interrupted` (one line: where, how to resume).
 
-    During training the signal is acted on at the end of the current step (or at once inside validation, where
-    Lightning itself stops on SIGTERM); outside training it interrupts at once.
+    During training the signal is acted on at the end of the current step, or, when a validation is due after that
+    step, at the end of that validation: the saved step then has its validation row and a resume neither skips nor
+    repeats it (Lightning's own SIGTERM handler, which stops inside validation, is replaced). Outside training, or
+    at a second signal, it interrupts at once.
+
+    Under DDP every rank stops at the same step, whichever ranks got the signal: the handler only records it, and
+    each step ends with one all-reduce of that record (Lightning's handler also broadcasts from inside the handler,
+    pairing with whatever collective the other rank is in: both ranks then wait forever). A rank interrupted outside
+    the steps takes the ranks it launched with it, instead of leaving them waiting in a collective.
     """
 
     def __init__(self, last: Path, resume: str):
         self.last, self.resume = last, resume
         self.signum: int | None = None
         self.fitting = False
+        self._after_validation = False  # the agreed stop waits for the validation of its step
         self._previous: dict[int, object] = {}
 
     def install(self) -> None:
@@ -86,6 +95,21 @@ class Interruption(L.Callback):
         if not self.fitting or not first:  # outside a step (or a second Ctrl-C): at once
             raise Interrupted(signum, self.message(saved=self.last.is_file(), step=None))
 
+    def _own_handlers(self) -> None:
+        """This callback's handlers alone (Lightning installs its own SIGTERM handler before fitting)."""
+        for s in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(s, self._handler)
+
+    def _agreed_signal(self, trainer) -> int | None:
+        """The signal any rank received (every rank calls this at the same step: one all-reduce under DDP)."""
+        if trainer.world_size == 1:
+            return self.signum
+        got = trainer.strategy.reduce(torch.tensor([self.signum or 0], device=trainer.strategy.root_device),
+                                      reduce_op="max")
+        if int(got.item()):
+            self.signum = self.signum or int(got.item())
+        return self.signum if int(got.item()) else None
+
     def message(self, saved: bool, step: int | None) -> str:
         name = signal.Signals(self.signum).name
         at = f" at step {step}" if step is not None else ""
@@ -94,7 +118,7 @@ class Interruption(L.Callback):
         return f"interrupted by {name}{at}: saved {self.last}; resume with: {self.resume}"
 
     def _stop(self, trainer, in_step: bool = False) -> None:
-        self.fitting = False
+        self.fitting = self._after_validation = False
         try:  # this step's row of the training curve: Lightning logs it after the hook this stop leaves
             if in_step:
                 trainer._logger_connector.update_train_step_metrics()
@@ -108,30 +132,59 @@ class Interruption(L.Callback):
     def _save(self, trainer) -> bool:
         if trainer.global_step == 0:
             return self.last.is_file()
-        if not self.last.is_file() or torch.load(self.last, map_location="cpu", weights_only=False,
-                                                 mmap=True).get("global_step") != trainer.global_step:
+        stale = not self.last.is_file() or torch.load(self.last, map_location="cpu", weights_only=False,
+                                                      mmap=True).get("global_step") != trainer.global_step
+        if trainer.world_size > 1:  # rank 0's answer for all: saving is a collective (its barrier)
+            stale = trainer.strategy.broadcast(stale, src=0)
+        if stale:
             for cb in trainer.checkpoint_callbacks:  # the resumed callback then writes last.ckpt, not last-v1.ckpt
                 if Path(cb.dirpath or "") == self.last.parent:
                     cb.last_model_path = str(self.last)
             trainer.save_checkpoint(self.last, weights_only=False)
         return True
 
+    def on_sanity_check_start(self, trainer, pl_module):
+        self._own_handlers()
+
     def on_train_start(self, trainer, pl_module):
+        self._own_handlers()
         self.fitting = True
-        if self.signum is not None:
+        if self._agreed_signal(trainer) is not None:
+            self._stop(trainer)
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        if self._after_validation:  # the previous step's validation (and its checkpoints) done
             self._stop(trainer)
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
-        if self.signum is not None:
-            self._stop(trainer, in_step=True)
+        if self._agreed_signal(trainer) is not None:
+            if validation_follows(trainer):  # the same answer on every rank
+                self._after_validation = True
+            else:
+                self._stop(trainer, in_step=True)
 
     def on_train_end(self, trainer, pl_module):
-        if self.signum is not None:
+        if self._after_validation or self._agreed_signal(trainer) is not None:
             self._stop(trainer)
         self.fitting = False
 
     def on_exception(self, trainer, pl_module, exception):
-        # Lightning stops on SIGTERM inside validation with its own SIGTERMException: the weights are still here.
+        # Lightning's SIGTERMException (its handler, in place until this callback's replace it): the weights are
+        # still here.
         if isinstance(exception, SIGTERMException) and self.signum is not None and self.fitting:
             self.fitting = False
             self._save(trainer)
+        if isinstance(exception, Interrupted):
+            stop_launched_ranks(trainer)
+
+
+def stop_launched_ranks(trainer, grace_s: float = 10.0) -> None:
+    """The ranks this process launched (Lightning's subprocess launcher) end: given ``grace_s`` to stop on their
+    own (an agreed stop), then killed (one left in a collective would wait for its time-out, 30 minutes by default)."""
+    procs = getattr(trainer.strategy.launcher, "procs", None) or []
+    deadline = time.monotonic() + grace_s
+    for proc in procs:
+        try:
+            proc.wait(timeout=max(deadline - time.monotonic(), 0.01))
+        except Exception:  # noqa: BLE001 - still running (subprocess.TimeoutExpired): it will not finish by itself
+            proc.kill()
