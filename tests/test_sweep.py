@@ -528,15 +528,21 @@ def test_tiny_sweep_end_to_end_then_rerun_launches_nothing(objects_root, tmp_pat
         assert (results / name).read_bytes()[:4] == b"\x89PNG", name
 
 
-@pytest.mark.slow
-def test_failed_jobs_are_recorded_with_their_error_line(objects_root, tmp_path):
+def failing_study(tmp_path: Path) -> Path:
+    """A two-seed study of one row whose data root does not exist: every job fails with a UserError."""
     study = tmp_path / "bad.yaml"
     study.write_text(json.dumps({
         "name": "bad", "seeds": [0, 1], "size": 64, "steps": 2,
         "overrides": ["trainer.val_check_interval=2", "data.loader.batch_size=2", "trainer.enable_progress_bar=false",
                       "loss=[recon]"],
-        # sys.exit inside the job (a UserError) ends the multirun process; the second seed must still get its turn.
         "rows": [{"name": "nodata", "experiment": "nvs_chairs", "overrides": [f"data.root={tmp_path}/none"]}]}))
+    return study
+
+
+@pytest.mark.slow
+def test_failed_jobs_are_recorded_with_their_error_line(objects_root, tmp_path):
+    # sys.exit inside the job (a UserError) ends the multirun process; the second seed must still get its turn.
+    study = failing_study(tmp_path)
     res = _sweep(str(study), "--runs", str(tmp_path / "runs"), "--results", str(tmp_path / "results"))
     assert res.returncode == 1
     for seed in (0, 1):

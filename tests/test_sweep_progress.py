@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import io
-import json
 import os
 import subprocess
 import sys
@@ -12,6 +11,7 @@ from types import SimpleNamespace
 
 from nvs.sweep.jobs import Status
 from nvs.sweep.progress import Progress, duration
+from tests.test_sweep import failing_study
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -64,12 +64,7 @@ def test_progress_numbers_the_jobs_reports_each_once_and_estimates_from_the_fini
 
 
 def test_a_sweep_prints_job_k_of_n_with_each_status(tmp_path):
-    study = tmp_path / "bad.yaml"
-    study.write_text(json.dumps({
-        "name": "bad", "seeds": [0, 1], "size": 64, "steps": 2,
-        "overrides": ["trainer.val_check_interval=2", "data.loader.batch_size=2", "trainer.enable_progress_bar=false",
-                      "loss=[recon]"],
-        "rows": [{"name": "nodata", "experiment": "nvs_chairs", "overrides": [f"data.root={tmp_path}/none"]}]}))
+    study = failing_study(tmp_path)
     res = subprocess.run([sys.executable, "-m", "nvs.sweep", str(study), "--runs", str(tmp_path / "runs"),
                           "--results", str(tmp_path / "results")], cwd=REPO, capture_output=True, text=True,
                          timeout=600)
