@@ -230,6 +230,10 @@ def test_paper_numbers_match_the_paper_tables():
     ({"overrides": ["data.size=128"], "rows": [{"name": "a"}]}, "set by the study"),
     ({"table": "fancy", "rows": [{"name": "a"}]}, "table must be one of"),
     ({"rows": [{"name": "a", "oracle": "yes"}]}, "oracle must be true or false"),
+    ({"rows": [{"name": "a", "reference": "copy_source", "data": "chairs", "seeds": [0]}]},
+     r"s.yaml:\d+: rows\[0\]: a reference row has no 'seeds'"),
+    ({"rows": [{"name": "a", "seeds": [1, 1]}]}, r"rows\[0\]: seeds must be distinct"),
+    ({"rows": [{"name": "a", "seeds": "two"}]}, "seeds must be"),
     ({"against": ["c"], "rows": [{"name": "a"}, {"name": "c", "reference": "copy_source", "data": "chairs"}]},
      r"s.yaml:\d+: against\[0\]: 'c' is not a trained row of the study; trained rows: a"),
 ])
@@ -238,6 +242,27 @@ def test_malformed_study_is_one_clear_error(tmp_path, bad, message):
     path.write_text(json.dumps({"size": 64, "steps": 2, **bad}))
     with pytest.raises(sweep.UserError, match=message):
         sweep.load_study(path)
+
+
+def test_a_row_runs_its_own_seeds_unless_the_command_line_gives_them(tmp_path):
+    rows = [{"name": "full", "experiment": "nvs_chairs"},
+            {"name": "noskip", "experiment": "nvs_chairs", "overrides": ["model/skips=none"], "seeds": [0]},
+            {"name": "two", "experiment": "nvs_chairs", "overrides": ["model/skips=wo_conv0"], "seeds": 2},
+            {"name": "copy", "reference": "copy_source", "data": "chairs"}]
+    path = tmp_path / "s.yaml"
+    path.write_text(json.dumps({"size": 64, "steps": 2, "seeds": [0, 1, 2], "rows": rows}))
+    planned = {}
+    for job in sweep.plan(sweep.load_study(path), tmp_path / "runs"):
+        planned.setdefault(job.row.name, []).append(job.seed)
+    assert planned == {"full": [0, 1, 2], "noskip": [0], "two": [0, 1], "copy": [0]}
+    # Each (row, seed) is still its own directory: the row's seed list changes which jobs run, not their keys.
+    assert len({j.key for j in sweep.plan(sweep.load_study(path), tmp_path / "runs")}) == 7
+    from nvs.sweep.tables import _seeds_cell
+    assert _seeds_cell(sweep.load_study(path)) == "0, 1, 2; noskip: 0; two: 0, 1 (reference rows: 0)"
+    everywhere = sweep.load_study(path, seeds=[0, 1])
+    assert {r.name: sweep.row_seeds(everywhere, r) for r in everywhere.rows} == {
+        "full": (0, 1), "noskip": (0, 1), "two": (0, 1), "copy": (0,)}
+    assert _seeds_cell(everywhere) == "0, 1 (reference rows: 0)"
 
 
 # -- a fabricated multirun directory --------------------------------------------------------------------------------

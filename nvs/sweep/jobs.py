@@ -37,7 +37,7 @@ from nvs.core.legacy import SAME_BEHAVIOUR
 from nvs.run.compose import compose
 from nvs.sweep.recorded import as_today
 from nvs.sweep.recorder import FAILED, STDERR
-from nvs.sweep.study import Row, Study
+from nvs.sweep.study import Row, Study, seed_list
 
 JOB_RECORD = "sweep_job.json"
 RECORD_VERSION = 2  # 2: the key is made of the row's overrides; the config is checked with config_changes
@@ -120,8 +120,12 @@ def row_overrides(study: Study, row: Row, extra: tuple[str, ...] = ()) -> list[s
 
 
 def row_seeds(study: Study, row: Row) -> tuple[int, ...]:
-    # A reference model has nothing to train: one evaluation stands for every seed.
-    return study.seeds[:1] if row.reference else study.seeds
+    """The seeds a row runs: the study's; the row's own 'seeds:' unless --seeds was given; one for a reference."""
+    if row.reference:
+        return study.seeds[:1]  # a reference model has nothing to train: one evaluation stands for every seed
+    if row.seeds is not None and not study.seeds_from_command_line:
+        return tuple(seed_list(row.seeds))
+    return study.seeds
 
 
 def compose_job(kind: str, overrides: list[str]) -> DictConfig:

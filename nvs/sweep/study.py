@@ -43,6 +43,10 @@ class Row:
     data: str | None = None        # required for reference rows; for trained rows read from the composed config
     paper: dict[str, float] = field(default_factory=dict)
     oracle: bool = False           # uses ground truth at test time: shown, never the best or the pick of a cost table
+    # The row's own seeds (an int N means 0..N-1), replacing the study's 'seeds:' for this row: a row that needs
+    # fewer seeds than the table's (Table 3's rows whose paper gap is small). --seeds on the command line replaces
+    # both. Not for reference rows (one evaluation stands for every seed).
+    seeds: int | tuple[int, ...] | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "label", self.label or self.name)
@@ -95,6 +99,7 @@ class Study:
     rows: tuple[Row, ...]
     table: str = "metrics"
     against: tuple[str, ...] = ()
+    seeds_from_command_line: bool = False  # --seeds given: every trained row runs these, whatever its own 'seeds:'
 
     @property
     def scale(self) -> str:
@@ -134,6 +139,17 @@ def _check_row(row: Row, where: str) -> None:
     bad = [m for m in row.paper if m not in METRICS]
     if bad:
         raise UserError(f"{where}: paper numbers for unknown metric(s) {bad}")
+    if row.seeds is not None:
+        if row.reference is not None:
+            raise UserError(f"{where}: a reference row has no 'seeds' (one evaluation stands for every seed)")
+        own = seed_list(row.seeds)
+        if not own or len(set(own)) != len(own) or min(own) < 0:
+            raise UserError(f"{where}: seeds must be distinct, non-negative and at least one, got {own}")
+
+
+def seed_list(seeds: int | tuple[int, ...]) -> list[int]:
+    """A study's or row's 'seeds:' value as a list: an int N means 0..N-1."""
+    return list(range(seeds)) if isinstance(seeds, int) else [int(s) for s in seeds]
 
 
 def load_study(path: str | Path, seeds: list[int] | None = None, size: int | None = None,
@@ -169,7 +185,7 @@ def load_study(path: str | Path, seeds: list[int] | None = None, size: int | Non
         if base not in trained:
             raise UserError(f"{source.where(('against', i))}: '{base}' is not a trained row of the study; "
                             f"trained rows: {', '.join(trained)}")
-    file_seeds = list(range(spec.seeds)) if isinstance(spec.seeds, int) else list(spec.seeds)
+    file_seeds = seed_list(spec.seeds)
     chosen = [int(s) for s in (seeds if seeds is not None else file_seeds)]
     if not chosen or len(set(chosen)) != len(chosen):
         raise UserError(f"{source.where(('seeds',))}: seeds must be distinct and at least one, got {chosen}")
@@ -181,4 +197,4 @@ def load_study(path: str | Path, seeds: list[int] | None = None, size: int | Non
         default_size=spec.size, default_steps=spec.steps,
         overrides=_check_overrides(source.where(("overrides",)), spec.overrides),
         metrics=tuple(metrics), group_by=spec.group_by, rows=spec.rows, table=spec.table,
-        against=tuple(spec.against))
+        against=tuple(spec.against), seeds_from_command_line=seeds is not None)

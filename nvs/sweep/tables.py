@@ -12,7 +12,7 @@ from nvs.core.provenance import git_sha, utc_now
 from nvs.sweep.collect import SKIP_LEVELS, collect, render_csv, summarize
 from nvs.sweep.convergence_report import convergence_tables, curves_png
 from nvs.sweep.goal_lines import against_base, goals, md_cell, test_sets_cell
-from nvs.sweep.jobs import Job
+from nvs.sweep.jobs import Job, row_seeds
 from nvs.sweep.paper_order import decide, ordering_lines
 from nvs.sweep.per_model_plot import per_model_png
 from nvs.sweep.study import Study
@@ -39,6 +39,19 @@ def render_markdown(study: Study, records: list[dict], provenance: dict) -> str:
     return render(study, records, provenance)[0]
 
 
+def _seeds_cell(study) -> str:
+    """The study's seeds, the rows that run their own ('seeds:' of a row) and the reference rows' one."""
+    text = ", ".join(str(s) for s in study.seeds)
+    own: dict[tuple[int, ...], list[str]] = {}
+    for row in study.rows:
+        seeds = row_seeds(study, row)
+        if not row.reference and seeds != study.seeds:
+            own.setdefault(seeds, []).append(row.name)
+    for seeds, names in own.items():
+        text += f"; {', '.join(names)}: {', '.join(str(s) for s in seeds)}"
+    return f"{text} (reference rows: {study.seeds[0]})"
+
+
 def render(study: Study, records: list[dict], provenance: dict) -> tuple[str, dict[str, bytes]]:
     """The study's Markdown, and the per-model figures it links to: {file name: PNG}."""
     rows = summarize(study, records)
@@ -60,7 +73,7 @@ def render(study: Study, records: list[dict], provenance: dict) -> tuple[str, di
         f"| device | {'; '.join(provenance['devices']) or '—'} |",
         f"| image size | {study.size}² |",
         f"| steps | {_steps_cell(study, records)} |",
-        f"| seeds | {', '.join(str(s) for s in study.seeds)} (reference rows: {study.seeds[0]}) |",
+        f"| seeds | {_seeds_cell(study)} |",
         f"| precision | {precision_cell(records)} |",
         f"| jobs | {', '.join(f'{n} {s}' for s, n in sorted(counts.items()))} |",
         f"| test sets | {test_sets_cell(records)} |",
