@@ -146,6 +146,33 @@ def test_pick_is_the_cheapest_row_within_one_percent_of_the_best_non_oracle_l1()
     assert sweep.pick_cheapest([_summary_row("oracle", 0.05, 1.0, oracle=True)]) == (None, None)
 
 
+def test_the_pick_is_decided_by_the_interval_of_its_l1_against_the_best(tmp_path):
+    n = 30  # 10 test models x 3 pairs
+    base = [0.20 + 0.01 * (k % 5) for k in range(n)]
+    full = _per_image(tmp_path, "full", base)
+    # 0.5% worse on every pair: the interval is tight and its upper end inside the 1% margin
+    close = _per_image(tmp_path, "close", [v * 1.005 for v in base])
+    # 0.5% worse on the mean, but +-10% by test model: the point estimate is within 1%, the interval is not
+    noisy = _per_image(tmp_path, "noisy", [v * (1.005 + (0.1 if (k // 3) % 2 else -0.1)) for k, v in enumerate(base)])
+
+    def row(name, d, ms):
+        mean = sum(float(x.split(",")[3]) for x in (d / "test_per_image.csv").read_text().splitlines()[1:]) / n
+        return {**_summary_row(name, mean, ms), "dirs": [d]}
+
+    rows = [row("full", full, 10.0), row("close", close, 7.0), row("noisy", noisy, 5.0)]
+    assert rows[2]["l1"][0] <= rows[0]["l1"][0] * 1.01  # the point estimate alone would pick the noisy row
+    best, pick = sweep.pick_cheapest(rows)
+    assert (best["row"], pick["row"]) == ("full", "close")
+    ok, gap = sweep.within_margin(rows[2], best)
+    assert not ok and gap.lo < 0.01 * best["l1"][0] < gap.hi
+    ok, gap = sweep.within_margin(rows[1], best)
+    assert ok and 0 < gap.lo <= gap.hi <= 0.01 * best["l1"][0]
+    # Without per-image results the point estimate decides, and says so.
+    assert sweep.within_margin(_summary_row("x", 0.2009, 1.0), {**_summary_row("b", 0.2, 2.0)}) == (True, None)
+    from nvs.sweep.tables import _pick_sentence
+    assert "shown by the interval of ΔL1 against it, Δ +0.00" in _pick_sentence(best, pick, rows[0], "1%")
+
+
 COST_STUDY = {
     "name": "cost", "seeds": [0], "size": 64, "steps": 10, "group_by": "data", "table": "cost",
     "metrics": ["l1", "ssim"],

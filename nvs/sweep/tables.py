@@ -11,9 +11,10 @@ from nvs.core.metric_spec import IMAGE_METRICS, SPECS
 from nvs.core.provenance import git_sha, utc_now
 from nvs.sweep.collect import SKIP_LEVELS, collect, render_csv, summarize
 from nvs.sweep.convergence_report import convergence_tables, curves_png
+from nvs.sweep.bootstrap import Gap, paired_gap, read_seeds
 from nvs.sweep.goal_lines import against_base, goals, md_cell, test_sets_cell
 from nvs.sweep.jobs import Job, row_seeds
-from nvs.sweep.paper_order import decide, ordering_lines
+from nvs.sweep.paper_order import decide, gap_text, ordering_lines
 from nvs.sweep.per_model_plot import per_model_png
 from nvs.sweep.study import Study
 
@@ -175,15 +176,32 @@ def pick_cheapest(rows: list[dict], cost: str = PICK_COST,
                   tolerance: float = PICK_L1_TOLERANCE) -> tuple[dict | None, dict | None]:
     """(best, pick) among one table's trained, non-oracle rows that have a mean L1.
 
-    best has the lowest mean L1; pick has the lowest mean ``cost`` among the rows whose L1 is at most
-    (1 + tolerance) x best's (ties go to the lower L1). Rows are ``summarize`` entries; (None, None) without any.
+    best has the lowest mean L1; pick has the lowest mean ``cost`` among the rows within ``tolerance`` of best's L1
+    (ties go to the lower L1). "Within" is decided by the interval where both rows have per-image results: the upper
+    end of the two-level bootstrap interval of Δ = row - best is at most ``tolerance`` x best's L1 (the row is shown
+    to be no more than the margin worse). Rows without per-image results fall back to the point estimate
+    (``within_margin``). Rows are ``summarize`` entries; (None, None) without any.
     """
     eligible = [r for r in rows if r["kind"] == "train" and not r["oracle"] and r["l1"][0] is not None]
     if not eligible:
         return None, None
     best = min(eligible, key=lambda r: r["l1"][0])
-    within = [r for r in eligible if r["l1"][0] <= best["l1"][0] * (1 + tolerance) and r[cost][0] is not None]
+    within = [r for r in eligible if r[cost][0] is not None and within_margin(r, best, tolerance)[0]]
     return best, min(within, key=lambda r: (r[cost][0], r["l1"][0]), default=None)
+
+
+def within_margin(row: dict, best: dict, tolerance: float = PICK_L1_TOLERANCE) -> tuple[bool, Gap | None]:
+    """Whether ``row``'s L1 is within ``tolerance`` of ``best``'s, and the interval that decided it (None: decided
+    by the point estimate, for rows without per-image results; always within for ``best`` itself)."""
+    if row is best:
+        return True, None
+    margin = tolerance * best["l1"][0]
+    gap = None
+    if row.get("dirs") and best.get("dirs"):
+        gap = paired_gap(read_seeds(row["dirs"]), read_seeds(best["dirs"]), "l1", threshold=margin)
+    if gap is None or gap.lo is None:
+        return row["l1"][0] <= best["l1"][0] + margin, None
+    return (not gap.near and gap.hi <= margin), gap
 
 
 def _skipped_cell(r: dict) -> str:
@@ -203,7 +221,9 @@ def _cost_tables(groups: dict[str | None, list[dict]], present: list[str]) -> li
              "(forward, backward, optimizer). ΔL1 is relative to the best L1 among the trained rows that use no "
              "ground truth (oracle rows are upper bounds and reference rows are not configurations: neither is "
              f"ever the best or the pick). ★ marks the cheapest row at evaluation whose L1 is within {pct} of that "
-             "best. Warps skipped: the fraction of (test sample, skip level) warps an adaptive model skipped, then "
+             f"best, decided by the interval: the upper end of the 95% interval of ΔL1 against the best (two-level "
+             f"bootstrap over seeds and test groups) is at most {pct} of the best's L1 (the point estimate where a "
+             "row has no per-image results). Warps skipped: the fraction of (test sample, skip level) warps an adaptive model skipped, then "
              "per level conv0/conv2/conv3/conv4 in %.", ""]
     header = ["Configuration", "n", "Eval (ms/img)", "×", "Train (ms/step)",
               *[f"{SPECS[m].label} {SPECS[m].arrow}" for m in present], "ΔL1", "Warps skipped", "Pick",
@@ -232,6 +252,11 @@ def _pick_sentence(best: dict | None, pick: dict | None, base: dict | None, pct:
         return "No pick: no trained row without ground truth has both an L1 and an eval time yet."
     head = f"**Pick**: {md_cell(pick['label'])}, the cheapest at evaluation within {pct} of the best L1 " \
            f"({best['l1'][0]:.4f}, {md_cell(best['label'])})"
+    _, gap = within_margin(pick, best)
+    if pick is not best:
+        head += (f", shown by the interval of ΔL1 against it, {gap_text(gap, 4)} (upper end at most "
+                 f"{PICK_L1_TOLERANCE * best['l1'][0]:.4f})" if gap is not None else
+                 ", by the point estimate (no per-image results to give an interval)")
     if base is None or pick is base:
         return head + ": no configuration cheaper than the first row stays within that margin, so nothing can be " \
                       "skipped here at this budget."
