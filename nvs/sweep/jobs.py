@@ -120,18 +120,14 @@ def row_overrides(study: Study, row: Row, extra: tuple[str, ...] = ()) -> list[s
 
 
 def row_seeds(study: Study, row: Row) -> tuple[int, ...]:
-    """The seeds a row runs: the study's; the row's own 'seeds:' unless --seeds was given; one for a reference."""
-    if row.reference:
-        return study.seeds[:1]  # a reference model has nothing to train: one evaluation stands for every seed
-    if row.seeds is not None and not study.seeds_from_command_line:
-        return tuple(seed_list(row.seeds))
-    return study.seeds
+    # The study's seeds; the row's own 'seeds:' unless --seeds was given; one for a reference (nothing to train).
+    own = row.seeds is not None and not study.seeds_from_command_line
+    return study.seeds[:1] if row.reference else tuple(seed_list(row.seeds)) if own else study.seeds
 
 
 def compose_job(kind: str, overrides: list[str]) -> DictConfig:
     """The job's config as Hydra composes it (hydra node excluded): conf/evaluate.yaml or conf/train.yaml."""
     return compose("evaluate" if kind == "reference" else "train", overrides)
-
 
 # -- identity and staleness ------------------------------------------------------------------------------------------
 def job_key(kind: str, overrides: list[str], seed: int) -> str:
