@@ -170,7 +170,8 @@ def test_the_pick_is_decided_by_the_interval_of_its_l1_against_the_best(tmp_path
     # Without per-image results the point estimate decides, and says so.
     assert sweep.within_margin(_summary_row("x", 0.2009, 1.0), {**_summary_row("b", 0.2, 2.0)}) == (True, None)
     from nvs.sweep.tables import _pick_sentence
-    assert "shown by the interval of ΔL1 against it, Δ +0.00" in _pick_sentence(best, pick, rows[0], "1%")
+    gap = sweep.within_margin(pick, best)[1]
+    assert "shown by the interval of ΔL1 against it, Δ +0.00" in _pick_sentence(best, pick, rows[0], "1%", gap)
 
 
 COST_STUDY = {

@@ -6,9 +6,9 @@ job), ``collect`` (one record per job, the CSV), ``bootstrap`` (the two-level bo
 ``verdict_trace`` (a verdict per test group: wins, sign test, the groups that undo it), ``testset`` (the test set a
 job was measured on), ``goal_lines`` (the converged studies' goals, rows against a base row), ``paper_order`` (the
 rows against the paper's order), ``per_model_plot`` (their per-model figure), ``tables`` (the Markdown tables, cost
-tables), ``paper_tally`` (the committed tables' count of the paper's orderings) and ``__main__`` (the command
-line). Names are also reachable as ``nvs.sweep.<name>``, loaded on first use, so that importing
-``nvs.sweep.recorder`` inside a training job loads nothing else.
+tables), ``pick`` (a cost table's pick, by the interval), ``paper_tally`` (the committed tables' count of the
+paper's orderings) and ``__main__`` (the command line). Names are also reachable as ``nvs.sweep.<name>``, loaded
+on first use, so that importing ``nvs.sweep.recorder`` inside a training job loads nothing else.
 """
 
 from __future__ import annotations
@@ -19,8 +19,8 @@ from pathlib import Path
 # The modules whose public names are reachable as nvs.sweep.<name>, searched in this order: the recorder first (a
 # training job that names nvs.sweep.JobRecorder loads nothing else), the command line last (it loads everything).
 # A name is public when it does not start with "_".
-MODULES = ("recorder", "study", "jobs", "launch", "collect", "goal_lines", "tables", "paper_order", "bootstrap",
-           "verdict_trace", "per_model_plot", "paper_tally", "__main__")
+MODULES = ("recorder", "study", "jobs", "launch", "collect", "goal_lines", "tables", "pick", "paper_order",
+           "bootstrap", "verdict_trace", "per_model_plot", "paper_tally", "__main__")
 
 
 def __getattr__(name: str):

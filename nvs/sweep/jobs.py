@@ -37,7 +37,7 @@ from nvs.core.legacy import SAME_BEHAVIOUR
 from nvs.run.compose import compose
 from nvs.sweep.recorded import as_today
 from nvs.sweep.recorder import FAILED, STDERR
-from nvs.sweep.study import Row, Study, seed_list
+from nvs.sweep.study import Row, Study, row_seeds
 
 JOB_RECORD = "sweep_job.json"
 RECORD_VERSION = 2  # 2: the key is made of the row's overrides; the config is checked with config_changes
@@ -119,15 +119,10 @@ def row_overrides(study: Study, row: Row, extra: tuple[str, ...] = ()) -> list[s
             *row.overrides, *config_extra]
 
 
-def row_seeds(study: Study, row: Row) -> tuple[int, ...]:
-    # The study's seeds; the row's own 'seeds:' unless --seeds was given; one for a reference (nothing to train).
-    own = row.seeds is not None and not study.seeds_from_command_line
-    return study.seeds[:1] if row.reference else tuple(seed_list(row.seeds)) if own else study.seeds
-
-
 def compose_job(kind: str, overrides: list[str]) -> DictConfig:
     """The job's config as Hydra composes it (hydra node excluded): conf/evaluate.yaml or conf/train.yaml."""
     return compose("evaluate" if kind == "reference" else "train", overrides)
+
 
 # -- identity and staleness ------------------------------------------------------------------------------------------
 def job_key(kind: str, overrides: list[str], seed: int) -> str:

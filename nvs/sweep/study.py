@@ -24,7 +24,7 @@ REFERENCES = REFERENCE_MODELS
 from nvs.sweep.schema import Source, build
 
 # Table layouts: 'metrics' (the paper's tables: metrics, params, costs, paper numbers), 'cost' (cost against error,
-# the cheapest row within tables.PICK_L1_TOLERANCE of the best non-oracle L1 marked) or 'convergence' (the metrics
+# the cheapest row within pick.PICK_L1_TOLERANCE of the best non-oracle L1 marked) or 'convergence' (the metrics
 # tables after each job's validation curve under the stopping rule, and <stem>.png: nvs.sweep.convergence_report).
 TABLES = ("metrics", "cost", "convergence")
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
@@ -150,6 +150,16 @@ def _check_row(row: Row, where: str) -> None:
 def seed_list(seeds: int | tuple[int, ...]) -> list[int]:
     """A study's or row's 'seeds:' value as a list: an int N means 0..N-1."""
     return list(range(seeds)) if isinstance(seeds, int) else [int(s) for s in seeds]
+
+
+def row_seeds(study: Study, row: Row) -> tuple[int, ...]:
+    """The seeds a row runs: the study's; the row's own 'seeds:' unless --seeds was given; one for a reference row
+    (a reference model has nothing to train: one evaluation stands for every seed)."""
+    if row.reference:
+        return study.seeds[:1]
+    if row.seeds is not None and not study.seeds_from_command_line:
+        return tuple(seed_list(row.seeds))
+    return study.seeds
 
 
 def load_study(path: str | Path, seeds: list[int] | None = None, size: int | None = None,

@@ -9,17 +9,16 @@ from pathlib import Path
 from nvs.core.atomic import write_bytes, write_text
 from nvs.core.metric_spec import IMAGE_METRICS, SPECS
 from nvs.core.provenance import git_sha, utc_now
+from nvs.sweep.bootstrap import Gap
 from nvs.sweep.collect import SKIP_LEVELS, collect, render_csv, summarize
 from nvs.sweep.convergence_report import convergence_tables, curves_png
-from nvs.sweep.bootstrap import Gap, paired_gap, read_seeds
 from nvs.sweep.goal_lines import against_base, goals, md_cell, test_sets_cell
-from nvs.sweep.jobs import Job, row_seeds
+from nvs.sweep.jobs import Job
 from nvs.sweep.paper_order import decide, gap_text, ordering_lines
 from nvs.sweep.per_model_plot import per_model_png
-from nvs.sweep.study import Study
+from nvs.sweep.pick import PICK_COST, PICK_L1_TOLERANCE, pick_with_gap
+from nvs.sweep.study import Study, row_seeds
 
-PICK_L1_TOLERANCE = 0.01
-PICK_COST = "eval_forward_ms_per_image"
 
 
 def _fmt(mean: float | None, std: float | None, decimals: int) -> str:
@@ -172,38 +171,6 @@ def _metrics_tables(groups: dict[str | None, list[dict]], present: list[str], pa
     return lines
 
 
-def pick_cheapest(rows: list[dict], cost: str = PICK_COST,
-                  tolerance: float = PICK_L1_TOLERANCE) -> tuple[dict | None, dict | None]:
-    """(best, pick) among one table's trained, non-oracle rows that have a mean L1.
-
-    best has the lowest mean L1; pick has the lowest mean ``cost`` among the rows within ``tolerance`` of best's L1
-    (ties go to the lower L1). "Within" is decided by the interval where both rows have per-image results: the upper
-    end of the two-level bootstrap interval of Δ = row - best is at most ``tolerance`` x best's L1 (the row is shown
-    to be no more than the margin worse). Rows without per-image results fall back to the point estimate
-    (``within_margin``). Rows are ``summarize`` entries; (None, None) without any.
-    """
-    eligible = [r for r in rows if r["kind"] == "train" and not r["oracle"] and r["l1"][0] is not None]
-    if not eligible:
-        return None, None
-    best = min(eligible, key=lambda r: r["l1"][0])
-    within = [r for r in eligible if r[cost][0] is not None and within_margin(r, best, tolerance)[0]]
-    return best, min(within, key=lambda r: (r[cost][0], r["l1"][0]), default=None)
-
-
-def within_margin(row: dict, best: dict, tolerance: float = PICK_L1_TOLERANCE) -> tuple[bool, Gap | None]:
-    """Whether ``row``'s L1 is within ``tolerance`` of ``best``'s, and the interval that decided it (None: decided
-    by the point estimate, for rows without per-image results; always within for ``best`` itself)."""
-    if row is best:
-        return True, None
-    margin = tolerance * best["l1"][0]
-    gap = None
-    if row.get("dirs") and best.get("dirs"):
-        gap = paired_gap(read_seeds(row["dirs"]), read_seeds(best["dirs"]), "l1", threshold=margin)
-    if gap is None or gap.lo is None:
-        return row["l1"][0] <= best["l1"][0] + margin, None
-    return (not gap.near and gap.hi <= margin), gap
-
-
 def _skipped_cell(r: dict) -> str:
     if r["warp_skipped"][0] is None:
         return "—"
@@ -214,7 +181,7 @@ def _skipped_cell(r: dict) -> str:
 
 def _cost_tables(groups: dict[str | None, list[dict]], present: list[str]) -> list[str]:
     """Cost against error per dataset: eval forward time, speed-up over the first trained row, median train step
-    time, the metrics, L1 relative to the best non-oracle row, warps skipped, and the pick (see ``pick_cheapest``)."""
+    time, the metrics, L1 relative to the best non-oracle row, warps skipped, and the pick (see ``nvs.sweep.pick``)."""
     pct = f"{100 * PICK_L1_TOLERANCE:g}%"
     lines = [f"Eval is the forward pass alone per test image (batch of the test loader, metrics excluded); ×: how many "
              "times faster than the table's first trained row; train is the median time of one training step "
@@ -223,7 +190,8 @@ def _cost_tables(groups: dict[str | None, list[dict]], present: list[str]) -> li
              f"ever the best or the pick). ★ marks the cheapest row at evaluation whose L1 is within {pct} of that "
              f"best, decided by the interval: the upper end of the 95% interval of ΔL1 against the best (two-level "
              f"bootstrap over seeds and test groups) is at most {pct} of the best's L1 (the point estimate where a "
-             "row has no per-image results). Warps skipped: the fraction of (test sample, skip level) warps an adaptive model skipped, then "
+             "row has no per-image results). Warps skipped: the fraction of (test sample, skip level) warps an "
+             "adaptive model skipped, then "
              "per level conv0/conv2/conv3/conv4 in %.", ""]
     header = ["Configuration", "n", "Eval (ms/img)", "×", "Train (ms/step)",
               *[f"{SPECS[m].label} {SPECS[m].arrow}" for m in present], "ΔL1", "Warps skipped", "Pick",
@@ -231,7 +199,7 @@ def _cost_tables(groups: dict[str | None, list[dict]], present: list[str]) -> li
     for group, grows in groups.items():
         if group is not None:
             lines += [f"## {group}", ""]
-        best, pick = pick_cheapest(grows)
+        best, pick, gap = pick_with_gap(grows)
         base = next((r for r in grows if r["kind"] == "train" and not r["oracle"] and r[PICK_COST][0]), None)
         lines += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
         for r in grows:
@@ -243,16 +211,15 @@ def _cost_tables(groups: dict[str | None, list[dict]], present: list[str]) -> li
             cells += [f"{100 * (r['l1'][0] / best['l1'][0] - 1):+.1f}%" if best and r["l1"][0] is not None else "—",
                       _skipped_cell(r), "★" if r is pick else "", _status(r)]
             lines.append("| " + " | ".join(cells) + " |")
-        lines += ["", _pick_sentence(best, pick, base, pct), ""]
+        lines += ["", _pick_sentence(best, pick, base, pct, gap), ""]
     return lines
 
 
-def _pick_sentence(best: dict | None, pick: dict | None, base: dict | None, pct: str) -> str:
+def _pick_sentence(best: dict | None, pick: dict | None, base: dict | None, pct: str, gap: Gap | None) -> str:
     if best is None or pick is None:
         return "No pick: no trained row without ground truth has both an L1 and an eval time yet."
     head = f"**Pick**: {md_cell(pick['label'])}, the cheapest at evaluation within {pct} of the best L1 " \
            f"({best['l1'][0]:.4f}, {md_cell(best['label'])})"
-    _, gap = within_margin(pick, best)
     if pick is not best:
         head += (f", shown by the interval of ΔL1 against it, {gap_text(gap, 4)} (upper end at most "
                  f"{PICK_L1_TOLERANCE * best['l1'][0]:.4f})" if gap is not None else
