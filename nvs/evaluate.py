@@ -19,8 +19,8 @@ from nvs.run.build import build_data
 from nvs.run.checkpoints import restore_module, restore_run_config
 from nvs.run.cli import before_hydra, exits_cleanly, hydra_task
 from nvs.run.precision import Choice, choose
-from nvs.run.artifacts import (check_writable, is_global_zero, run_record, summary_line, test_record, write_metrics,
-                               write_per_image)
+from nvs.run.artifacts import (check_writable, is_global_zero, run_record, summary_line, test_record,
+                               write_run_results)
 from nvs.run.compose import CONF_DIR
 
 
@@ -56,8 +56,7 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
     tested = f"checkpoint {cfg.ckpt_path}" if cfg.ckpt_path else "a reference model (nothing trained)"
     result = {**run_record(module, run, choice), **test_record(module, elapsed, cfg.ckpt_path, tested)}
     if trainer.is_global_zero:  # the rows are gathered from every rank: one writer
-        write_per_image(out_dir / "test_per_image.csv", module.test_rows)
-        write_metrics(out_dir / "metrics.json", result)
+        write_run_results(out_dir, result, module.test_rows)
     return result
 
 
