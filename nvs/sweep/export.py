@@ -71,13 +71,27 @@ def _replace_dir(new: Path, final: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
-def _restore_orphans(dest: Path) -> None:
-    """A runner killed between the two renames of :func:`_replace_dir`'s fallback left ``.<job>.old-<pid>`` and no
-    ``<job>``: put the old files back (they are whole)."""
+def _alive(pid: str) -> bool:
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return False
+    except (ValueError, OSError):  # not a number, or another user's process: leave its files alone
+        return True
+    return True
+
+
+def _recover(dest: Path) -> None:
+    """What a killed runner left in ``dest``: an old export between the two renames of :func:`_replace_dir`'s
+    fallback (``.<job>.old-<pid>``, no ``<job>``) is put back (its files are whole); a half-filled
+    ``.<job>.export-<pid>`` of a process that is gone is removed."""
     for old in dest.glob(".*.old-*"):
         final = dest / old.name[1:].rsplit(".old-", 1)[0]
         if old.is_dir() and not final.exists():
             old.rename(final)
+    for tmp in dest.glob(".*.export-*"):
+        if tmp.is_dir() and not _alive(tmp.name.rsplit("-", 1)[1]):
+            shutil.rmtree(tmp, ignore_errors=True)
 
 
 def export_jobs(jobs: list[Job], dest: str | Path) -> list[Path]:
@@ -89,7 +103,7 @@ def export_jobs(jobs: list[Job], dest: str | Path) -> list[Path]:
     """
     dest = Path(dest)
     if dest.is_dir():
-        _restore_orphans(dest)
+        _recover(dest)
     written = []
     for job in jobs:
         if job.status != Status.DONE or job.dir.resolve().parent == dest.resolve():
