@@ -142,8 +142,8 @@ def test_the_training_curve_is_cut_back_to_whole_rows(tmp_path, monkeypatch):
     disk = FullDisk(7)
 
     def full_open(name, mode="r", **kwargs):  # Lightning appends the rows through its file system's open
-        f = real_open(name, mode, **kwargs)
-        return _Writer(disk, f) if "a" in mode or "w" in mode else f
+        f = real_open(name, mode, **kwargs)  # (text modes open the binary one through this too: left as it is)
+        return _Writer(disk, f) if mode in ("a", "w") else f
 
     monkeypatch.setattr(logger.experiment._fs, "open", full_open)  # (fsspec shares the instance: put back after)
     for step in range(1, 4):
