@@ -6,7 +6,9 @@ that exits 0 trained its steps and holds finite weights.
 
 The fast form injects the faults from inside the run (a callback at a random step: SIGKILL in a forked copy of this
 process, SIGTERM in this process); the slow form sends them from outside, at a random moment, to ``python -m
-nvs.train``.
+nvs.train``, and covers 2-process DDP: the stop, the resume at the stopped step on both ranks, and SIGTERM to one
+rank in the test after training. Disk full: tests/test_disk_full.py; evaluate and the sweep runner:
+tests/test_fault_evaluate.py, tests/test_fault_sweep.py.
 """
 
 from __future__ import annotations
