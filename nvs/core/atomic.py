@@ -72,8 +72,9 @@ def _temp_with(path: Path, data: bytes) -> str:
 
 
 def write_files(files: dict[str | Path, bytes]) -> None:
-    """Write every file or none: all temp files first (fsynced), then each renamed over its path. A write that fails
-    (or a kill before the renames) leaves every old file as it was; :class:`WriteFailed` names the file."""
+    """Write every file or none: all temp files first (fsynced), then each renamed over its path (a rename takes no
+    space). A write that fails (or a kill before the renames) leaves every old file as it was; :class:`WriteFailed`
+    names the file."""
     temps: list[tuple[str, Path]] = []
     try:
         for path, data in files.items():
@@ -81,8 +82,6 @@ def write_files(files: dict[str | Path, bytes]) -> None:
             try:
                 path.parent.mkdir(parents=True, exist_ok=True)
                 temps.append((_temp_with(path, data), path))
-            except WriteFailed:
-                raise
             except OSError as err:
                 raise WriteFailed(path, err) from None
         for tmp, path in temps:
