@@ -127,7 +127,7 @@ def convert_state(files: dict[str, Path], target: dict[str, torch.Tensor]) -> di
 def convert(paths: list[str], data: str = "chairs", epoch: str | None = None, out: str | None = None,
             overrides: tuple[str, ...] = ()) -> Path:
     """Write the nvs checkpoint; returns its path (default: beside the inputs, ``<epoch>_nvs.ckpt``)."""
-    from nvs.core.atomic import write_bytes
+    from nvs.core.atomic import reason, write_bytes
     from nvs.core.weights_digest import stamp
     from nvs.run.build import build_module
     from nvs.run.compose import compose
@@ -153,7 +153,7 @@ def convert(paths: list[str], data: str = "chairs", epoch: str | None = None, ou
     try:
         write_bytes(dest, buf.getvalue())
     except OSError as err:
-        raise UserError(f"--out {dest}: cannot write ({err.strerror or err})") from None
+        raise UserError(f"--out {dest}: cannot write ({reason(err)})") from None
     return dest
 
 

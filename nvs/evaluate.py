@@ -19,12 +19,24 @@ from nvs.run.build import build_data
 from nvs.run.checkpoints import restore_module, restore_run_config
 from nvs.run.cli import before_hydra, exits_cleanly, hydra_task
 from nvs.run.precision import Choice, choose
-from nvs.run.artifacts import (check_writable, is_global_zero, run_record, summary_line, test_record, write_metrics,
-                               write_per_image)
+from nvs.run.artifacts import (check_writable, is_global_zero, run_record, summary_line, test_record,
+                               write_run_results)
 from nvs.run.compose import CONF_DIR
+from nvs.run.standard_callbacks import SignalStop
 
 
 def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
+    """Test the checkpoint (or reference model) of ``cfg``; write metrics.json and test_per_image.csv into
+    ``out_dir``, both when it completes (SIGINT/SIGTERM before that: :class:`Interrupted`, nothing written)."""
+    stop = SignalStop()
+    stop.install()
+    try:
+        return _evaluate(cfg, out_dir, stop)
+    finally:
+        stop.restore()
+
+
+def _evaluate(cfg: DictConfig, out_dir: Path, stop: SignalStop) -> dict:
     limit = cfg.get("limit")
     if limit is not None and (isinstance(limit, bool) or not isinstance(limit, int) or limit < 1):
         raise UserError(f"limit={limit}: expected a positive number of test pairs (limit=null: all of them)")
@@ -47,7 +59,7 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
     try:
         # Lightning's test bar: batches of test pairs, elapsed and ETA (+trainer.enable_progress_bar=false: none)
         trainer = L.Trainer(**{"enable_progress_bar": True, **placement}, precision=precision, logger=False,
-                            enable_model_summary=False)
+                            enable_model_summary=False, callbacks=[stop])
     except Exception as err:  # noqa: BLE001 - a placement the Trainer refuses (devices, strategy) is the user's
         raise UserError(f"config 'trainer': {user_message(err) or f'{err.__class__.__name__}: {err}'}") from None
     t0 = time.perf_counter()
@@ -56,8 +68,7 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
     tested = f"checkpoint {cfg.ckpt_path}" if cfg.ckpt_path else "a reference model (nothing trained)"
     result = {**run_record(module, run, choice), **test_record(module, elapsed, cfg.ckpt_path, tested)}
     if trainer.is_global_zero:  # the rows are gathered from every rank: one writer
-        write_per_image(out_dir / "test_per_image.csv", module.test_rows)
-        write_metrics(out_dir / "metrics.json", result)
+        write_run_results(out_dir, result, module.test_rows)
     return result
 
 

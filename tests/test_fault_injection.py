@@ -6,21 +6,26 @@ that exits 0 trained its steps and holds finite weights.
 
 The fast form injects the faults from inside the run (a callback at a random step: SIGKILL in a forked copy of this
 process, SIGTERM in this process); the slow form sends them from outside, at a random moment, to ``python -m
-nvs.train``.
+nvs.train``, and covers 2-process DDP: the stop, the resume at the stopped step on both ranks, and SIGTERM to one
+rank in the test after training. Disk full: tests/test_disk_full.py; evaluate and the sweep runner:
+tests/test_fault_evaluate.py, tests/test_fault_sweep.py.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import random
 import re
+import shlex
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+import lightning as L
 import pytest
 import torch
 
@@ -230,3 +235,110 @@ def test_sigterm_stops_both_ranks_of_a_ddp_run_promptly(objects_root, tmp_path, 
     step = int(re.search(r"at step (\d+): saved", lines[0]).group(1))
     assert step == _last_step(run_dir) >= 3
     assert _user_files(run_dir) == USER_FILES
+
+
+# -- DDP: the resume after the agreed stop, and a signal to one rank in the test after training -----------------------
+class RankSteps(L.Callback):
+    """Appends "<rank> <global step>" at the start of every training step of every rank (one write each)."""
+
+    def __init__(self, out: str):
+        self.out = Path(out)
+
+    def on_train_batch_start(self, trainer, *args):
+        with self.out.open("a") as f:
+            f.write(f"{trainer.global_rank} {trainer.global_step}\n")
+
+
+class SignalRankAt(L.Callback):
+    """Sends ``signum`` to this process if it is rank ``rank``: at the end of training step ``step``, or (``step``
+    None) at the start of its first test batch (the test after training)."""
+
+    def __init__(self, rank: int, signum: int, step: int | None = None):
+        self.rank, self.signum, self.step = rank, signum, step
+
+    def on_train_batch_end(self, trainer, *args):
+        if self.step is not None and trainer.global_step == self.step and trainer.global_rank == self.rank:
+            os.kill(os.getpid(), self.signum)
+
+    def on_test_batch_start(self, trainer, pl_module, batch, batch_idx, dataloader_idx=0):
+        if self.step is None and batch_idx == 0 and trainer.global_rank == self.rank:
+            os.kill(os.getpid(), self.signum)
+
+
+def _ddp_args(root: Path, run_dir: Path, steps: int, probe: Path, *extra: str) -> list[str]:
+    return [f"data.root={root}", f"hydra.run.dir={run_dir}", *TRAIN, *TINY, f"trainer.max_steps={steps}",
+            f"trainer.val_check_interval={VAL_EVERY}", "trainer.log_every_n_steps=1",
+            f"callbacks.model_checkpoint.last_every_n_steps={INTERVAL}", "trainer.accelerator=cpu",
+            "trainer.devices=2", "trainer.strategy=ddp", "data.loader.batch_size=1",
+            "+callbacks.steps._target_=tests.test_fault_injection.RankSteps", f"+callbacks.steps.out={probe}", *extra]
+
+
+def _rank_steps(probe: Path) -> dict[int, list[int]]:
+    steps: dict[int, list[int]] = {}
+    for line in probe.read_text().splitlines() if probe.is_file() else []:
+        rank, step = map(int, line.split())
+        steps.setdefault(rank, []).append(step)
+    return steps
+
+
+def _ddp_run(argv: list[str], timeout_s: float = 600) -> tuple[int, str]:
+    """``python -m nvs.train *argv`` under 2-process DDP -> (exit code, stderr); every rank is gone after it."""
+    proc = _train(argv, start_new_session=True)
+    try:
+        stderr = proc.communicate(timeout=timeout_s)[1]
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)  # a rank left behind (the hang this guards against) ends with it
+    return proc.returncode, stderr
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="2-process DDP on CPU (gloo)")
+def test_a_ddp_run_stopped_by_sigterm_resumes_at_the_stopped_step_on_both_ranks(objects_root, tmp_path):
+    steps, stop = 7, 4  # SIGTERM to rank 1 after step 4 (no validation follows it: the stop is at step 4)
+    run_dir = tmp_path / "run"
+    _user_dir(run_dir)
+    kill = ["+callbacks.kill._target_=tests.test_fault_injection.SignalRankAt", "+callbacks.kill.rank=1",
+            f"+callbacks.kill.signum={int(signal.SIGTERM)}", f"+callbacks.kill.step={stop}"]
+    code, stderr = _ddp_run(_ddp_args(objects_root, run_dir, steps, tmp_path / "first.txt", "test=false", *kill))
+    lines = [ln for ln in stderr.splitlines() if ln.startswith("interrupted by")]
+    assert code == 143 and "Traceback" not in stderr and len(lines) == 1, stderr[-3000:]
+    assert f"at step {stop}: saved" in lines[0] and _last_step(run_dir) == stop
+    assert _rank_steps(tmp_path / "first.txt") == {0: list(range(stop)), 1: list(range(stop))}
+
+    code, stderr = _ddp_run(_ddp_args(objects_root, run_dir, steps, tmp_path / "resumed.txt", "test=false"))
+    assert code == 0, stderr[-3000:]
+    # both ranks restored the stopped step: neither redid a step nor skipped one
+    assert _rank_steps(tmp_path / "resumed.txt") == {0: list(range(stop, steps)), 1: list(range(stop, steps))}
+    assert json.loads((run_dir / "metrics.json").read_text())["steps"] == steps == _last_step(run_dir)
+    rows = _rows(run_dir / "csv" / "metrics.csv")
+    assert sorted(s for s, kind in rows if kind == "train") == list(range(steps)), rows
+    assert sorted(s for s, kind in rows if kind == "val") == list(range(VAL_EVERY, steps + 1, VAL_EVERY)), rows
+    assert _user_files(run_dir) == USER_FILES
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="2-process DDP on CPU (gloo)")
+def test_sigterm_to_rank_1_in_the_test_after_training_stops_both_ranks_and_the_printed_command_finishes(
+        objects_root, tmp_path):
+    """Before, rank 1 left at once and rank 0 waited for it in the gather of the test rows."""
+    steps = 3
+    run_dir = tmp_path / "run"
+    kill = ["+callbacks.kill._target_=tests.test_fault_injection.SignalRankAt", "+callbacks.kill.rank=1",
+            f"+callbacks.kill.signum={int(signal.SIGTERM)}"]
+    # one test pair per batch: each rank has two test batches, the signal lands in the first
+    argv = _ddp_args(objects_root, run_dir, steps, tmp_path / "first.txt", "data.loader.eval_batch_size=1", *kill)
+    code, stderr = _ddp_run(argv, timeout_s=300)
+    lines = [ln for ln in stderr.splitlines() if ln.startswith("interrupted by")]
+    assert code == 143 and "Traceback" not in stderr and len(lines) == 1, stderr[-3000:]
+    assert lines[0].startswith(f"interrupted by SIGTERM at step {steps}: saved {run_dir / 'checkpoints' / 'last.ckpt'}"
+                               "; resume with: python -m nvs.train "), lines
+    assert not (run_dir / "metrics.json").exists() and not (run_dir / "test_per_image.csv").exists()
+    assert _last_step(run_dir) == steps
+
+    # the printed command (without the test's kill callback): nothing left to train, the test, the results
+    command = [a for a in shlex.split(lines[0].split("resume with: ", 1)[1])[3:] if "callbacks.kill" not in a]
+    code, stderr = _ddp_run(command)
+    assert code == 0, stderr[-3000:]
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert metrics["steps"] == steps and metrics["test"]["n_pairs"] == 4

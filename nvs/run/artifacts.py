@@ -11,18 +11,32 @@ from pathlib import Path
 
 import pandas as pd
 
-from nvs.core.atomic import write_json, write_text
+from nvs.core.atomic import json_text, write_files, write_json, write_text
 from nvs.core.errors import UserError
+
+METRICS, PER_IMAGE = "metrics.json", "test_per_image.csv"
+
+
+def _per_image_csv(rows: list[dict]) -> str:
+    buf = io.StringIO()
+    pd.DataFrame(rows).to_csv(buf, index=False, float_format="%.6g")
+    return buf.getvalue()
 
 
 def write_per_image(path: str | Path, rows: list[dict]) -> None:
-    buf = io.StringIO()
-    pd.DataFrame(rows).to_csv(buf, index=False, float_format="%.6g")
-    write_text(path, buf.getvalue())
+    write_text(path, _per_image_csv(rows))
 
 
 def write_metrics(path: str | Path, payload: dict) -> None:
     write_json(path, payload)
+
+
+def write_run_results(out_dir: str | Path, payload: dict, rows: list[dict] | None = None) -> None:
+    """``metrics.json`` and (given ``rows``) ``test_per_image.csv`` in ``out_dir``: both or neither. A disk that fills
+    (or a kill) leaves the previous pair as it was; metrics.json, which marks a run as finished, is renamed last."""
+    files = {} if rows is None else {Path(out_dir) / PER_IMAGE: _per_image_csv(rows).encode()}
+    files[Path(out_dir) / METRICS] = json_text(payload).encode()
+    write_files(files)
 
 
 def run_record(module, run, choice, training: dict | None = None) -> dict:

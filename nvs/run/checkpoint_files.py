@@ -46,11 +46,19 @@ def read_checkpoint(path: str | Path, mmap: bool = False) -> dict:
     try:
         ckpt = torch.load(p, map_location="cpu", weights_only=False, mmap=mmap)
     except Exception as err:  # noqa: BLE001 - any unpickling failure is a bad file for the user
-        raise UserError(f"{path}: not a readable checkpoint ({err.__class__.__name__}: {err})") from None
+        raise _unreadable(p, err) from None
     if isinstance(ckpt, dict) and not verify(ckpt, p) and _rank_zero():
         print(f"note: {path} holds no content hash of its weights (written before nvs stored one): loaded "
               "unverified", file=sys.stderr)
     return ckpt
+
+
+def _unreadable(path: Path, err: Exception) -> UserError:
+    if not zipfile.is_zipfile(path):  # torch's format is a zip; this is no zip, nor a legacy file torch could read
+        return UserError(f"{path}: not a readable checkpoint: incomplete (no zip directory: a write cut short, e.g. "
+                         "by a kill) or another kind of file; pass ckpt_path=<another checkpoint>")
+    first = next((ln.strip() for ln in str(err).splitlines() if ln.strip()), "")
+    return UserError(f"{path}: not a readable checkpoint ({err.__class__.__name__}: {first[:300]})")
 
 
 def _rank_zero() -> bool:
@@ -66,7 +74,7 @@ def step_of(path: Path) -> int:
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=False, mmap=True)
     except Exception as err:  # noqa: BLE001 - any unpickling failure is a bad file for the user
-        raise UserError(f"{path}: not a readable checkpoint ({err.__class__.__name__}: {err})") from None
+        raise _unreadable(Path(path), err) from None
     return int(ckpt.get("global_step", 0)) if isinstance(ckpt, dict) else 0
 
 

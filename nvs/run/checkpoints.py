@@ -30,7 +30,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint as _LightningModelCheckp
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 from omegaconf import DictConfig, OmegaConf
 
-from nvs.core.atomic import write_bytes
+from nvs.core.atomic import reason, write_bytes
 from nvs.core.errors import UserError
 from nvs.core.legacy import upgrade_targets
 from nvs.models.reference import REFERENCE_MODELS
@@ -41,7 +41,13 @@ from nvs.run.config_check import model_mismatch
 
 
 class CheckpointWriteError(UserError):
-    """A checkpoint could not be written (permissions, disk full): training stops."""
+    """A checkpoint could not be written (permissions, disk full): training stops; the file it would have replaced
+    is unchanged (atomic writes), so the run resumes from it."""
+
+    def __init__(self, path, err: OSError):
+        kept = "the previous one is unchanged" if Path(path).is_file() else "none was there before"
+        super().__init__(f"cannot write checkpoint {path}: {reason(err)}; training stopped, {kept} (free space or "
+                         "fix the permissions, then resume with the same command)")
 
 
 class AtomicCheckpointIO(TorchCheckpointIO):
@@ -51,9 +57,7 @@ class AtomicCheckpointIO(TorchCheckpointIO):
         try:
             write_bytes(path, buf.getvalue())
         except OSError as err:
-            raise CheckpointWriteError(f"cannot write checkpoint {path}: {err.strerror or err}; training stopped "
-                                       "(free space or fix the permissions, then resume with the same command)") \
-                from None
+            raise CheckpointWriteError(path, err) from None
 
 
 def link_or_copy(src: str | Path, dst: str | Path) -> None:
@@ -65,7 +69,11 @@ def link_or_copy(src: str | Path, dst: str | Path) -> None:
         os.link(src, tmp)
     except OSError:
         write_bytes(tmp, src.read_bytes())
-    os.replace(tmp, dst)
+    try:
+        os.replace(tmp, dst)
+    except OSError:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 class ModelCheckpoint(_LightningModelCheckpoint):
@@ -94,8 +102,7 @@ class ModelCheckpoint(_LightningModelCheckpoint):
             try:
                 link_or_copy(self._last_checkpoint_saved, filepath)
             except OSError as err:
-                raise CheckpointWriteError(f"cannot write checkpoint {filepath}: {err.strerror or err}; training "
-                                           "stopped") from None
+                raise CheckpointWriteError(filepath, err) from None
         trainer.strategy.barrier()
         self._last_global_step_saved = trainer.global_step
         self._last_checkpoint_saved = filepath

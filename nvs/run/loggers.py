@@ -8,10 +8,13 @@ setting Lightning passes on (one warning per run).
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 from lightning.pytorch.loggers import TensorBoardLogger, WandbLogger
 from omegaconf import DictConfig, OmegaConf
+
+from nvs.core.atomic import WriteFailed
 
 # metric names TensorBoard's HPARAMS tab shows beside the config (their values come from the logged scalars)
 HPARAM_METRICS = ("val/l1", "val/ssim_paper", "test/l1", "test/ssim_paper", "test/psnr", "test/lpips")
@@ -40,9 +43,13 @@ def log_run_config(loggers: list, cfg: DictConfig) -> None:
     """Each logger's hyperparameters are the resolved run config (rank zero only: the loggers' methods are)."""
     params = run_config(cfg)
     for logger in loggers:
-        logger.log_hyperparams(params)
-        if isinstance(logger, TensorBoardLogger):
-            _tensorboard_hparams(logger, params)
+        try:
+            logger.log_hyperparams(params)
+            if isinstance(logger, TensorBoardLogger):
+                _tensorboard_hparams(logger, params)
+        except OSError as err:  # a full disk: one line naming where, not Lightning's traceback
+            where = getattr(logger, "log_dir", None) or getattr(logger, "save_dir", None) or "."
+            raise WriteFailed(Path(where) / "hparams.yaml", err) from None
 
 
 def _tensorboard_hparams(logger: TensorBoardLogger, params: dict) -> None:

@@ -59,25 +59,19 @@ class Throughput(L.Callback):
         self.step_s.extend(state_dict.get("step_s", []))
 
 
-class Interruption(L.Callback):
-    """SIGINT / SIGTERM: save ``last.ckpt`` and stop with :class:`Interrupted` (one line: where, how to resume).
+class SignalStop(L.Callback):
+    """SIGINT / SIGTERM in a test (``nvs.evaluate``, the test after training): every rank stops at the same test batch
+    with :class:`Interrupted` and nothing is written (the results are written when the test completes); outside a
+    stage that defers it, at once.
 
-    During training the signal is acted on at the end of the current step, or, when a validation is due after that
-    step, at the end of that validation: the saved step then has its validation row and a resume neither skips nor
-    repeats it (Lightning's own SIGTERM handler, which stops inside validation, is replaced). Outside training, or
-    at a second signal, it interrupts at once.
-
-    Under DDP every rank stops at the same step, whichever ranks got the signal: the handler only records it, and
-    each step ends with one all-reduce of that record (Lightning's handler also broadcasts from inside the handler,
-    pairing with whatever collective the other rank is in: both ranks then wait forever). A rank interrupted outside
-    the steps takes the ranks it launched with it, instead of leaving them waiting in a collective.
+    Under DDP the handler only records the signal and each test batch ends with one all-reduce of that record: a rank
+    that left on its own would leave the others waiting in the gather of the rows (Lightning's handler broadcasts
+    from inside the handler, and lets a test with one batch run on as if nothing happened).
     """
 
-    def __init__(self, last: Path, resume: str):
-        self.last, self.resume = last, resume
+    def __init__(self):
         self.signum: int | None = None
-        self.fitting = False
-        self._after_validation = False  # the agreed stop waits for the validation of its step
+        self.testing = False
         self._previous: dict[int, object] = {}
 
     def install(self) -> None:
@@ -89,14 +83,23 @@ class Interruption(L.Callback):
             signal.signal(s, handler)
         self._previous = {}
 
+    def _deferred(self) -> bool:
+        """Whether a signal now waits for the ranks' agreement (else it interrupts at once)."""
+        return self.testing
+
     def _handler(self, signum, frame) -> None:
         first = self.signum is None
         self.signum = signum
-        if not self.fitting or not first:  # outside a step (or a second Ctrl-C): at once
-            raise Interrupted(signum, self.message(saved=self.last.is_file(), step=None))
+        if not self._deferred() or not first:  # outside a deferring stage (or a second Ctrl-C): at once
+            raise Interrupted(signum, self.stop_line(None))
+
+    def stop_line(self, trainer) -> str:
+        """The one line printed at the stop (``trainer``: None outside a stage)."""
+        return (f"interrupted by {signal.Signals(self.signum).name} during the evaluation: nothing written "
+                "(metrics.json and test_per_image.csv are written when it completes); run the same command again")
 
     def _own_handlers(self) -> None:
-        """This callback's handlers alone (Lightning installs its own SIGTERM handler before fitting)."""
+        """This callback's handlers alone (Lightning installs its own SIGTERM handler in every stage)."""
         for s in (signal.SIGINT, signal.SIGTERM):
             signal.signal(s, self._handler)
 
@@ -109,6 +112,58 @@ class Interruption(L.Callback):
         if int(got.item()):
             self.signum = self.signum or int(got.item())
         return self.signum if int(got.item()) else None
+
+    def _test_stop(self, trainer) -> None:
+        if self._agreed_signal(trainer) is not None:
+            self.testing = False
+            raise Interrupted(self.signum, self.stop_line(trainer))
+
+    def on_test_start(self, trainer, pl_module):
+        self._own_handlers()
+        self.testing = True
+        self._test_stop(trainer)
+
+    def on_test_batch_end(self, trainer, *args):
+        self._test_stop(trainer)
+
+    def on_test_epoch_end(self, trainer, pl_module):  # before the module's gather of the rows
+        self._test_stop(trainer)
+
+    def on_test_end(self, trainer, pl_module):
+        self.testing = False
+
+    def on_exception(self, trainer, pl_module, exception):
+        if isinstance(exception, Interrupted):
+            stop_launched_ranks(trainer)
+
+
+class Interruption(SignalStop):
+    """SIGINT / SIGTERM during a training run: save ``last.ckpt`` and stop with :class:`Interrupted` (one line: where,
+    how to resume).
+
+    During training the signal is acted on at the end of the current step, or, when a validation is due after that
+    step, at the end of that validation: the saved step then has its validation row and a resume neither skips nor
+    repeats it (Lightning's own SIGTERM handler, which stops inside validation, is replaced). In the test after
+    training every rank stops at the same test batch (:class:`SignalStop`); ``last.ckpt`` holds the trained weights,
+    and the resume command tests them. Outside these, or at a second signal, it interrupts at once.
+
+    Under DDP every rank stops at the same step, whichever ranks got the signal: the handler only records it, and
+    each step ends with one all-reduce of that record (Lightning's handler also broadcasts from inside the handler,
+    pairing with whatever collective the other rank is in: both ranks then wait forever). A rank interrupted outside
+    the steps takes the ranks it launched with it, instead of leaving them waiting in a collective.
+    """
+
+    def __init__(self, last: Path, resume: str):
+        super().__init__()
+        self.last, self.resume = last, resume
+        self.fitting = False
+        self._after_validation = False  # the agreed stop waits for the validation of its step
+
+    def _deferred(self) -> bool:
+        return self.fitting or self.testing
+
+    def stop_line(self, trainer) -> str:
+        return self.message(saved=self.last.is_file(), step=None if trainer is None else trainer.global_step)
 
     def message(self, saved: bool, step: int | None) -> str:
         name = signal.Signals(self.signum).name
@@ -167,6 +222,9 @@ class Interruption(L.Callback):
         if self._after_validation or self._agreed_signal(trainer) is not None:
             self._stop(trainer)
         self.fitting = False
+        # Under DDP a signal before the test starts waits for the test's first agreement (a rank that left now would
+        # leave the others in the test's collectives); without a test the run ends normally.
+        self.testing = trainer.world_size > 1
 
     def on_exception(self, trainer, pl_module, exception):
         # Lightning's SIGTERMException (its handler, in place until this callback's replace it): the weights are
@@ -174,8 +232,7 @@ class Interruption(L.Callback):
         if isinstance(exception, SIGTERMException) and self.signum is not None and self.fitting:
             self.fitting = False
             self._save(trainer)
-        if isinstance(exception, Interrupted):
-            stop_launched_ranks(trainer)
+        super().on_exception(trainer, pl_module, exception)
 
 
 def stop_launched_ranks(trainer, grace_s: float = 10.0) -> None:

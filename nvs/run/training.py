@@ -24,7 +24,7 @@ from nvs.core.errors import Interrupted, UserError, user_message
 from nvs.data.datamodule import NVSDataModule
 from nvs.module.lightning_module import NVSModule
 from nvs.run.artifacts import (check_writable, existing_files, is_global_zero, remove_unstarted_run, run_record,
-                               test_record, write_metrics, write_per_image)
+                               test_record, write_run_results)
 from nvs.run.build import build_data, build_module, choose_precision
 from nvs.run.checkpoint_files import read_checkpoint, resume_checkpoint
 from nvs.run.checkpoints import AtomicCheckpointIO
@@ -123,8 +123,8 @@ def _run(cfg: DictConfig, out_dir: Path, throughput: Throughput) -> dict:
     ckpt_dir = Path(checkpoint_cbs[0].dirpath) if checkpoint_cbs and checkpoint_cbs[0].dirpath else out_dir
     resume = resume_checkpoint(cfg.ckpt_path, ckpt_dir)
     for lg in loggers:  # the curve of the steps before the checkpoint stays; the steps trained again are re-logged
-        if resume is not None and isinstance(lg, L.pytorch.loggers.CSVLogger) and is_global_zero():
-            continue_from(lg, resume[1])
+        if isinstance(lg, L.pytorch.loggers.CSVLogger) and is_global_zero():
+            continue_from(lg, resume[1] if resume is not None else None)
     interruption = Interruption(ckpt_dir / "last.ckpt", resume_command(out_dir))
     carried = [throughput, interruption]
     if loggers:  # the learning rate of each parameter group at every logged step (it needs a logger)
@@ -178,8 +178,6 @@ def _fit_and_test(cfg: DictConfig, out_dir: Path, trainer: L.Trainer, module: NV
         # which weights the test metrics are of: no validation ran (limit_val_batches=0, ...) means the final ones
         tested = "best validation checkpoint" if ckpt else f"final weights (step {trainer.global_step})"
         result.update(test_record(module, time.perf_counter() - t0, ckpt, tested))
-        if trainer.is_global_zero:  # the rows are gathered from every rank: one writer
-            write_per_image(out_dir / "test_per_image.csv", module.test_rows)
-    if trainer.is_global_zero:
-        write_metrics(out_dir / "metrics.json", result)
+    if trainer.is_global_zero:  # the rows are gathered from every rank: one writer
+        write_run_results(out_dir, result, module.test_rows if testing else None)
     return result

@@ -38,7 +38,7 @@ from nvs.sweep.cost_check import check_precision
 from nvs.sweep.export import export_jobs, export_root
 from nvs.sweep.jobs import Job, Status, plan, prepare_job_dir, refresh, to_launch
 from nvs.sweep.launch import Launch, available_cores, interrupt_on_signal, launch_row, multirun_command
-from nvs.sweep.lock import JobLocks
+from nvs.sweep.lock import LOCKS, JobLocks
 from nvs.sweep.progress import Progress
 from nvs.sweep.study import load_study
 from nvs.sweep.tables import write_results
@@ -100,13 +100,14 @@ def _selected_rows(study, globs: str) -> set[str]:
     return chosen
 
 
-def _lock(locks: JobLocks, jobs: list[Job], force: bool) -> list[Job]:
-    """The jobs whose lock this sweep takes; one taken by another sweep is left to it (one line each), and one that
-    another sweep finished since the plan is not run again."""
+def _lock(locks: JobLocks, jobs: list[Job], force: bool, held: dict[str, str]) -> list[Job]:
+    """The jobs whose lock this sweep takes; one taken by another sweep is left to it (one line each, and its holder
+    in ``held``), and one that another sweep finished since the plan is not run again."""
     kept = []
     for j in jobs:
         holder = locks.acquire(j.dir.name)
         if holder is not None:
+            held[f"{j.row.name} s{j.seed}"] = holder
             print(f"[sweep] {j.row.name} s{j.seed}: skipped, another sweep is running it ({holder}; lock "
                   f"{locks.path(j.dir.name)})", file=sys.stderr)
         elif not force and refresh(j).status == Status.DONE:
@@ -159,9 +160,10 @@ def run(argv: list[str] | None = None) -> int:
         order = [j for row in study.rows for j in launching if j.row is row]  # the order they run in
         progress = Progress(order, skipped=len(jobs) - len(order))
         progress.begin()
+        held: dict[str, str] = {}  # job -> the other sweep holding it
         with JobLocks(root) as locks:
             for row in study.rows:
-                row_jobs = _lock(locks, [j for j in order if j.row is row], args.force)
+                row_jobs = _lock(locks, [j for j in order if j.row is row], args.force, held)
                 if not row_jobs:
                     continue
                 for j in row_jobs:
@@ -171,6 +173,11 @@ def run(argv: list[str] | None = None) -> int:
                            progress=progress)
                 locks.release()
         progress.end()
+        if len(held) == len(order):  # a second sweep of the same study and directories while the first runs
+            first, holder = next(iter(held.items()))
+            raise UserError(f"{root}: another sweep is running every job this one would launch ({first}: {holder}; "
+                            f"locks in {root / LOCKS}); refused: nothing launched, the tables and exports left as "
+                            "they are (run it again once that sweep has ended)")
         jobs = plan(study, root, extra, exported)
     if args.export_jobs:
         dest = export_root(args.results, study.scale)

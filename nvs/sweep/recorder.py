@@ -23,22 +23,32 @@ TARGET = f"{__name__}.JobRecorder"
 
 
 class _Tee:
-    """A text stream that writes to the original stream and to a file (the job's own stderr.log)."""
+    """A text stream that writes to a file (the job's own stderr.log) and to the original stream, as long as that
+    can be written: when the sweep runner is killed its end of the pipe is gone, and the job (stopped by the SIGTERM
+    it then gets) must still print its resume line and exit as interrupted, not fail on a broken pipe."""
 
     def __init__(self, stream, path: Path):
         self.stream, self.file = stream, open(path, "a", buffering=1)
 
     def write(self, s: str) -> int:
-        self.stream.write(s)
         self.file.write(s)
+        if self.stream is not None:
+            try:
+                self.stream.write(s)
+            except OSError:  # BrokenPipeError: nobody reads the job's stderr any more; its file has it all
+                self.stream = None
         return len(s)
 
     def flush(self) -> None:
-        self.stream.flush()
         self.file.flush()
+        if self.stream is not None:
+            try:
+                self.stream.flush()
+            except OSError:
+                self.stream = None
 
     def __getattr__(self, name):
-        return getattr(self.stream, name)
+        return getattr(self.stream if self.stream is not None else self.file, name)
 
 
 class JobRecorder(Callback):

@@ -6,7 +6,7 @@ from __future__ import annotations
 import collections
 from pathlib import Path
 
-from nvs.core.atomic import write_bytes, write_text
+from nvs.core.atomic import write_files
 from nvs.core.metric_spec import IMAGE_METRICS, SPECS
 from nvs.core.provenance import git_sha, utc_now
 from nvs.sweep.bootstrap import Gap
@@ -244,15 +244,16 @@ def provenance(records: list[dict], command: str) -> dict:
 
 
 def write_results(study: Study, jobs: list[Job], results_dir: str | Path, command: str) -> tuple[Path, Path]:
-    """Collect the jobs into ``<results>/<stem>.csv`` and ``.md`` (atomic writes); returns both paths."""
+    """Collect the jobs into ``<results>/<stem>.csv`` and ``.md`` and the table's figures, all rendered first and then
+    written together (``nvs.core.atomic.write_files``): a failure or a kill leaves the previous tables as they were,
+    not a new CSV beside an old Markdown. Returns the CSV's and the Markdown's paths."""
     records = collect(jobs)
     results_dir = Path(results_dir)
     csv_path, md_path = results_dir / f"{study.results_stem}.csv", results_dir / f"{study.results_stem}.md"
-    write_text(csv_path, render_csv(records))
     text, figures = render(study, records, provenance(records, command))
-    write_text(md_path, text)
-    for name, png in figures.items():
-        write_bytes(results_dir / name, png)
+    files = {csv_path: render_csv(records).encode(), md_path: text.encode(),
+             **{results_dir / name: png for name, png in figures.items()}}
     if study.table == "convergence" and (png := curves_png(records)) is not None:
-        write_bytes(results_dir / f"{study.results_stem}.png", png)
+        files[results_dir / f"{study.results_stem}.png"] = png
+    write_files(files)
     return csv_path, md_path
