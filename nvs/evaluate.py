@@ -80,6 +80,7 @@ def check_composes(argv: list[str]) -> None:
 
     from nvs.models.reference import REFERENCE_MODELS
     from nvs.run.compose import compose_raw
+    from nvs.run.config_check import unknown_override
 
     try:
         compose_raw("evaluate", argv)
@@ -96,6 +97,9 @@ def check_composes(argv: list[str]) -> None:
                             f"({'|'.join(REFERENCE_MODELS)}); a trained model comes from its checkpoint "
                             "(ckpt_path=...)") from None
         lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+        unknown = unknown_override("evaluate", argv, lines[0] if lines else "")
+        if unknown:
+            raise unknown from None
         raise UserError(" ".join(lines[:4]) or err.__class__.__name__) from None
 
 
@@ -116,7 +120,7 @@ def evaluation_precision(cfg: DictConfig, run: DictConfig) -> Choice:
 @exits_cleanly
 def main(cfg: DictConfig) -> None:
     # a failed evaluation leaves no run directory behind (a multirun job's stays: it is reported at the end)
-    with hydra_task("evaluate"):
+    with hydra_task("evaluate", cfg):
         out_dir = Path(cfg.out_dir)
         result = evaluate(cfg, out_dir)
     if not is_global_zero():
