@@ -18,6 +18,7 @@ from nvs.core.errors import UserError, user_message
 from nvs.run.build import build_data
 from nvs.run.checkpoints import restore_module, restore_run_config
 from nvs.run.cli import before_hydra, exits_cleanly, hydra_task
+from nvs.run.display_callbacks import PairTestBar
 from nvs.run.precision import Choice, choose
 from nvs.run.artifacts import (check_writable, is_global_zero, run_record, summary_line, test_record, write_metrics,
                                write_per_image)
@@ -45,9 +46,10 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
         check_writable(out_dir)
     placement = OmegaConf.to_container(cfg.trainer) if cfg.get("trainer") else {}
     try:
-        # Lightning's test bar: batches of test pairs, elapsed and ETA (+trainer.enable_progress_bar=false: none)
-        trainer = L.Trainer(**{"enable_progress_bar": True, **placement}, precision=precision, logger=False,
-                            enable_model_summary=False)
+        # the test bar counts test pairs, with elapsed time and ETA (+trainer.enable_progress_bar=false: none)
+        settings = {"enable_progress_bar": True, **placement}
+        bar = [PairTestBar()] if settings["enable_progress_bar"] else []
+        trainer = L.Trainer(**settings, callbacks=bar, precision=precision, logger=False, enable_model_summary=False)
     except Exception as err:  # noqa: BLE001 - a placement the Trainer refuses (devices, strategy) is the user's
         raise UserError(f"config 'trainer': {user_message(err) or f'{err.__class__.__name__}: {err}'}") from None
     t0 = time.perf_counter()
