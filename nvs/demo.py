@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 
 from nvs.core.metric_spec import IMAGE_METRICS, SPECS
-from nvs.run.config_check import hydra_value
+from nvs.run.overrides import hydra_value
 
 
 

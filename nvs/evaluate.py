@@ -18,6 +18,7 @@ from nvs.core.errors import UserError, user_message
 from nvs.run.build import build_data
 from nvs.run.checkpoints import restore_module, restore_run_config
 from nvs.run.cli import before_hydra, exits_cleanly, hydra_task
+from nvs.run.display_callbacks import PairTestBar
 from nvs.run.precision import Choice, choose
 from nvs.run.artifacts import (check_writable, is_global_zero, run_record, summary_line, test_record,
                                write_run_results)
@@ -57,9 +58,11 @@ def _evaluate(cfg: DictConfig, out_dir: Path, stop: SignalStop) -> dict:
         check_writable(out_dir)
     placement = OmegaConf.to_container(cfg.trainer) if cfg.get("trainer") else {}
     try:
-        # Lightning's test bar: batches of test pairs, elapsed and ETA (+trainer.enable_progress_bar=false: none)
-        trainer = L.Trainer(**{"enable_progress_bar": True, **placement}, precision=precision, logger=False,
-                            enable_model_summary=False, callbacks=[stop])
+        # the test bar counts test pairs, with elapsed time and ETA (+trainer.enable_progress_bar=false: none)
+        settings = {"enable_progress_bar": True, **placement}
+        bar = [PairTestBar()] if settings["enable_progress_bar"] else []
+        trainer = L.Trainer(**settings, callbacks=[stop, *bar], precision=precision, logger=False,
+                            enable_model_summary=False)
     except Exception as err:  # noqa: BLE001 - a placement the Trainer refuses (devices, strategy) is the user's
         raise UserError(f"config 'trainer': {user_message(err) or f'{err.__class__.__name__}: {err}'}") from None
     t0 = time.perf_counter()
@@ -91,6 +94,7 @@ def check_composes(argv: list[str]) -> None:
 
     from nvs.models.reference import REFERENCE_MODELS
     from nvs.run.compose import compose_raw
+    from nvs.run.config_check import unknown_override
 
     try:
         compose_raw("evaluate", argv)
@@ -107,6 +111,9 @@ def check_composes(argv: list[str]) -> None:
                             f"({'|'.join(REFERENCE_MODELS)}); a trained model comes from its checkpoint "
                             "(ckpt_path=...)") from None
         lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+        unknown = unknown_override("evaluate", argv, lines[0] if lines else "")
+        if unknown:
+            raise unknown from None
         raise UserError(" ".join(lines[:4]) or err.__class__.__name__) from None
 
 
@@ -127,7 +134,7 @@ def evaluation_precision(cfg: DictConfig, run: DictConfig) -> Choice:
 @exits_cleanly
 def main(cfg: DictConfig) -> None:
     # a failed evaluation leaves no run directory behind (a multirun job's stays: it is reported at the end)
-    with hydra_task("evaluate"):
+    with hydra_task("evaluate", cfg):
         out_dir = Path(cfg.out_dir)
         result = evaluate(cfg, out_dir)
     if not is_global_zero():

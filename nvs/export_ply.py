@@ -36,7 +36,7 @@ def export(cfg: DictConfig) -> Path:
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="export_ply")
 @exits_cleanly
 def main(cfg: DictConfig) -> None:
-    with hydra_task("export_ply"):
+    with hydra_task("export_ply", cfg):
         out = export(cfg)
     print(f"wrote {out}")
 

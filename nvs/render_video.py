@@ -52,7 +52,7 @@ def videos_dir(ckpt_path: str | Path) -> Path:
 def main(cfg: DictConfig) -> None:
     hydra_dir, job = Path(HydraConfig.get().runtime.output_dir), HydraConfig.get().job.name
     try:
-        with hydra_task("render_video"):
+        with hydra_task("render_video", cfg):
             written = render(cfg)
     finally:
         # Hydra's own folder holds only its record of the command when the videos went beside the checkpoint (or

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import hydra
@@ -14,18 +13,19 @@ from nvs.core.errors import UserError
 from nvs.run.artifacts import existing_files, is_global_zero, summary_line
 from nvs.run.cli import before_hydra, exits_cleanly, hydra_task
 from nvs.run.compose import CONF_DIR
-from nvs.run.config_check import trainer_arguments
+from nvs.run.overrides import trainer_arguments
 from nvs.run.training import run
 
 
 def main_cli() -> None:
-    """``python -m nvs.train``: every Lightning Trainer argument is ``trainer.<arg>=...`` (nvs.run.config_check)."""
+    """``python -m nvs.train``: every Lightning Trainer argument is ``trainer.<arg>=...`` (nvs.run.overrides)."""
     before_hydra("train", check_composes, rewrite=trainer_arguments)
     main()
 
 
 def check_composes(argv: list[str]) -> None:
-    """A single run's overrides compose, or one UserError naming the key (instead of Hydra's exit 1 before main).
+    """A single run's overrides compose, or one UserError naming the key (instead of Hydra's exit 1 before main): a
+    key the config lacks is refused with its schema's reason (nvs.run.config_check.unknown_override).
 
     Multiruns and Hydra's own flags (``--cfg``, ``--help``...) are left to Hydra: their overrides are sweeps.
     """
@@ -34,16 +34,15 @@ def check_composes(argv: list[str]) -> None:
     from hydra.errors import HydraException
 
     from nvs.run.compose import compose_raw
+    from nvs.run.config_check import unknown_override
 
     try:
         compose_raw("train", argv)
     except HydraException as err:
         lines = [ln.strip() for ln in str(err).split("Config search path")[0].splitlines() if ln.strip()]
-        m = re.match(r"Could not override '([^']+)'", lines[0]) if lines else None
-        if m:
-            value = next((a.split("=", 1)[1] for a in argv if a.split("=", 1)[0] == m.group(1)), "...")
-            raise UserError(f"config '{m.group(1)}': no such key in conf/train.yaml (a new key is added with "
-                            f"+{m.group(1)}={value})") from None
+        unknown = unknown_override("train", argv, lines[0] if lines else "")
+        if unknown:
+            raise unknown from None
         raise UserError(" ".join(lines[:8])) from None
 
 
@@ -54,7 +53,7 @@ def main(cfg: DictConfig) -> None:
     # A run that ends before its first step leaves no directory behind (a multirun job's stays: it is reported).
     keep = HydraConfig.get().mode != RunMode.RUN
     existing = existing_files(out_dir)  # the user's files there (and Hydra's, written before main): never removed
-    with hydra_task("train", existing):
+    with hydra_task("train", cfg, existing):
         OmegaConf.resolve(cfg)
     result = run(cfg, out_dir, keep_unstarted=keep, existing=existing)
     if not is_global_zero():

@@ -196,7 +196,7 @@ def _parsed(override: str):
 @pytest.mark.parametrize("value", ["/tmp/plain/run", "/tmp/é", "/tmp/日本 語/run", "/tmp/it's", "/tmp/a,b", "/tmp/x\\",
                                    "/tmp/x\\'y"])
 def test_hydra_value_reads_back_as_the_same_path(value):
-    from nvs.run.config_check import hydra_value
+    from nvs.run.overrides import hydra_value
 
     assert _parsed(f"k={hydra_value(value)}") == value
     assert (hydra_value(value) == value) == (value in ("/tmp/plain/run", "/tmp/x\\"))  # quoted only where needed

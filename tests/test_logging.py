@@ -20,7 +20,7 @@ from hydra.utils import instantiate
 from lightning.pytorch.loggers import CSVLogger, TensorBoardLogger, WandbLogger
 from PIL import Image
 
-from nvs.run.display_callbacks import StepProgressBar
+from nvs.run.display_callbacks import PairTestBar, StepProgressBar
 from nvs.run.quiet import silence_known_noise
 from nvs.run.visuals import image_grid
 from tests.conftest import compose_train
@@ -71,6 +71,35 @@ def test_progress_bar_counts_steps_toward_max_steps_across_epochs(tmp_path, caps
     assert "train steps" in out and "7/7" in out  # ... on one bar, counting steps toward max_steps
     assert "3/3" not in out and "Epoch 1" not in out and "Training" not in out  # not Lightning's per-epoch bar
     assert re.search(r"train steps:[^\r]*? [1-6]/7 \[\d\d:\d\d<\d\d:\d\d", out)  # elapsed<remaining: an ETA
+
+
+class _TinyTest(L.LightningModule):
+    def __init__(self):
+        super().__init__()
+        self.lin = torch.nn.Linear(1, 1)
+
+    def test_step(self, batch, batch_idx):
+        return self.lin(batch["src"].mean((1, 2, 3))[:, None]).mean()
+
+
+def _pairs_loader(n: int, batch_size: int):
+    pairs = [{"src": torch.rand(3, 4, 4), "tgt": torch.rand(3, 4, 4)} for _ in range(n)]
+    return torch.utils.data.DataLoader(pairs, batch_size=batch_size)  # 7 pairs at 3: batches of 3, 3 and 1
+
+
+@pytest.mark.parametrize("bar", [PairTestBar, StepProgressBar])
+@pytest.mark.parametrize("limit, pairs", [(1.0, 7), (2, 6)])
+def test_the_test_bar_counts_pairs_not_batches(bar, limit, pairs, tmp_path, capsys, monkeypatch):
+    silence_known_noise()
+    monkeypatch.setattr(StepProgressBar, "_terminal", staticmethod(lambda: True))  # its test bar is a terminal's
+    trainer = L.Trainer(callbacks=[bar()], logger=False, enable_model_summary=False, limit_test_batches=limit,
+                        default_root_dir=tmp_path)
+    trainer.test(_TinyTest(), _pairs_loader(7, 3), verbose=False)
+    out = capsys.readouterr().out
+    counts = re.findall(r"test pairs: [^\r\n]*?\| (\d+)/(\d+) \[", out)
+    assert counts and {int(total) for _, total in counts} == {pairs}  # the total is the pairs, not 3 (2) batches
+    assert [int(n) for n, _ in counts][-1] == pairs and {3, 6} & {int(n) for n, _ in counts}  # one batch: 3 pairs
+    assert "Testing" not in out and "pairs/s" in out  # not Lightning's bar of batches
 
 
 def test_silence_drops_exactly_the_listed_noise(caplog):

@@ -4,6 +4,7 @@ deduplication; and, where scripts/install_object_assets.sh has run, every Flight
 from __future__ import annotations
 
 import struct
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -232,8 +233,12 @@ def test_workers_in_a_process_that_has_rendered_run_in_process(tmp_path, monkeyp
     assert "rendering in-process" in capsys.readouterr().out
 
 
+# the checkout's asset folder (scripts/install_object_assets.sh's default destination)
+ASSETS = Path(__file__).resolve().parents[1] / "data" / "assets"
+
+
 def _extracted_or_skip(module):
-    if not module.ROOT.is_dir():
+    if not module.root(ASSETS).is_dir():
         pytest.skip(f"{module.PACKAGE} not extracted: run scripts/install_object_assets.sh")
 
 
@@ -246,7 +251,7 @@ def test_extracted_models_load_textured_and_front_along_z(source, kind):
 
     module = importlib.import_module(f"nvs.data.render.{source}")
     _extracted_or_skip(module)
-    models = getattr(module, f"{source}_models")(kind)
+    models = getattr(module, f"{source}_models")(kind, ASSETS)
     listed = module.CARS if kind == "cars" else module.CHAIRS
     # flightgear lists {folder: [names]}, ufoai {body: [wheel parts]}
     expected = sum(len(v) for v in listed.values()) if source == "flightgear" else len(listed)
@@ -290,18 +295,17 @@ def test_more_cars_load_along_z_with_their_licences():
     """The OpenCity, PGDrive and assimp cars that scripts/install_object_assets.sh extracted: every listed file is
     found, loads, lies along z and (but for OpenCity's untextured police car) is textured."""
     from nvs.data.render import more_cars
-    from nvs.data.render.sources import ASSET_DIR
 
-    present = [pkg for pkg in more_cars.PACKAGES if (ASSET_DIR / pkg).is_dir()]
+    present = [pkg for pkg in more_cars.PACKAGES if (ASSETS / pkg).is_dir()]
     if not present:
         pytest.skip("OpenCity / PGDrive / assimp models not extracted: run scripts/install_object_assets.sh")
-    models = more_cars.more_cars()
+    models = more_cars.more_cars(ASSETS)
     assert len(models) == sum(len(more_cars.PACKAGES[p][2]) for p in present)
     for m in models:
         parts = m.load()
         assert length_axis(parts) == "z", m.id
         assert m.id == "oc-police" or any(p.image is not None for p in parts), m.id
-        assert more_cars.COPYRIGHT[m.package].is_file(), m.package
+        assert more_cars.copyright_files(ASSETS)[m.package].is_file(), m.package
     by_id = {m.id: m for m in models}
     if "pgdrive-beetle" in by_id:
         assert by_id["pgdrive-beetle"].licence.startswith("CC-BY-4.0") and "soujagah" in by_id["pgdrive-beetle"].credit
@@ -328,3 +332,52 @@ def test_source_sheets_need_a_rendered_root(tmp_path, capsys):
         main(["sheets", f"root={tmp_path}", f"out={tmp_path / 'out'}"])
     assert err.value.code == 2
     assert str(tmp_path / "meta.json") in capsys.readouterr().err
+
+
+# -- where the extracted asset packages are found -------------------------------------------------------------------
+def test_the_asset_folder_is_the_option_then_the_environment_then_data_assets(tmp_path, monkeypatch):
+    from nvs.core.errors import UserError
+    from nvs.data.render.sources import asset_dir
+
+    opt, env = tmp_path / "opt", tmp_path / "env"
+    opt.mkdir()
+    env.mkdir()
+    monkeypatch.chdir(tmp_path)
+    assert asset_dir(str(opt), str(env)) == opt
+    assert asset_dir(None, str(env)) == env
+    assert asset_dir() == tmp_path / "data" / "assets"  # under the working directory, present or not
+    with pytest.raises(UserError, match=r"^assets=/no/such: no such directory"):
+        asset_dir("/no/such", str(env))
+    with pytest.raises(UserError, match=r"^NVS_ASSETS=/no/such: no such directory"):
+        asset_dir(None, "/no/such")
+
+
+def test_the_models_and_licences_come_from_the_asset_folder(tmp_path):
+    import trimesh
+
+    from nvs.data.render import more_cars
+    from nvs.data.render.assets import category_models, copyright_files
+
+    path = tmp_path / "assimp-testmodels" / more_cars.PACKAGES["assimp-testmodels"][2]["jeep"]
+    path.parent.mkdir(parents=True)
+    trimesh.creation.box(extents=(1.0, 1.0, 3.0)).export(path)
+    assert [m.id for m in more_cars.more_cars(tmp_path)] == ["assimp-jeep"]
+    assert "assimp-jeep" in {m.id for m in category_models("cars", tmp_path)}
+    assert more_cars.more_cars(tmp_path / "empty") == []
+    assert copyright_files(tmp_path)["flightgear-data-base"].is_relative_to(tmp_path)
+
+
+def test_render_names_a_missing_asset_folder_before_rendering(tmp_path, monkeypatch, capsys):
+    from nvs.data.render.__main__ import main
+
+    out = tmp_path / "out"
+    for argv, env, named in ((["chairs", f"assets={tmp_path / 'nope'}", f"out={out}"], None, "assets="),
+                             (["cars", f"out={out}"], str(tmp_path / "gone"), "NVS_ASSETS=")):
+        if env:
+            monkeypatch.setenv("NVS_ASSETS", env)
+        with pytest.raises(SystemExit) as code:
+            main(argv)
+        err = capsys.readouterr().err
+        assert code.value.code == 2 and err.startswith(f"error: {named}") and "no such directory" in err, err
+        assert "Traceback" not in err
+    assert not out.exists()

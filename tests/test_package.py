@@ -64,6 +64,15 @@ def test_the_installed_wheel_trains_from_its_own_configs(objects_root, tmp_path)
                            cwd=work, env=env, capture_output=True, text=True, check=True).stdout.split()
     assert all(Path(p).is_relative_to(venv) for p in where), where
 
+    # the renderer's extracted asset packages: the working directory's data/assets (not a folder inside the venv),
+    # and a folder asked for that is missing is one clear error
+    found = subprocess.run([str(python), "-c", "from nvs.data.render.sources import asset_dir; print(asset_dir())"],
+                           cwd=work, env=env, capture_output=True, text=True, check=True).stdout.strip()
+    assert Path(found) == (work / "data" / "assets").resolve(), found
+    missing = subprocess.run([str(python), "-m", "nvs.data.render", "chairs", f"assets={work / 'nope'}"], cwd=work,
+                             env=env, capture_output=True, text=True, timeout=120)
+    assert missing.returncode == 2 and missing.stderr.startswith(f"error: assets={work / 'nope'}: no such directory")
+
     helped = subprocess.run(["nvs-train", "--help"], cwd=work, env=env, capture_output=True, text=True, timeout=120)
     assert helped.returncode == 0, helped.stderr[-2000:]
     assert "train is powered by Hydra" in helped.stdout and "experiment: " in helped.stdout

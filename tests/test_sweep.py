@@ -14,6 +14,7 @@ from omegaconf import OmegaConf
 
 from nvs import pareto, sweep
 from nvs.report import pareto as pareto_lib
+from nvs.run.config_check import check_config
 from tests.conftest import compose_train
 
 REPO = Path(__file__).resolve().parents[1]
@@ -37,6 +38,7 @@ def test_every_study_row_composes_with_the_real_config(path, scale, tmp_path):
     assert study.rows and study.seeds
     for row in study.rows:
         cfg = _compose_row(study, row)
+        check_config("evaluate" if row.reference else "train", cfg)  # the typed schema takes every row
         cfg.paths.output_dir = str(tmp_path)
         if row.reference:
             cfg.out_dir = str(tmp_path)

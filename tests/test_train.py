@@ -11,6 +11,7 @@ from omegaconf import OmegaConf
 
 from nvs.models.reference import REFERENCE_MODELS
 from nvs.run.build import build_module, parameter_count
+from nvs.run.config_check import check_config
 from tests.conftest import CONF_DIR, compose_train, fixture_batch
 
 REPO = Path(__file__).resolve().parents[1]
@@ -28,6 +29,7 @@ PARAMS_64 = {"nvs": 11_719_223, "chen": 7_192_537, "sun": 55_737_007, "tatarchen
 @pytest.mark.parametrize("experiment", _options("experiment"))
 def test_every_experiment_composes_and_builds(experiment, tmp_path):
     cfg = compose_train([f"experiment={experiment}", f"paths.root_dir={tmp_path}"])
+    check_config("train", cfg)  # the typed schema takes every experiment
     cfg.paths.output_dir = str(tmp_path)
     OmegaConf.resolve(cfg)
     module = build_module(cfg)
@@ -63,6 +65,7 @@ def test_every_group_option_composes_to_its_own_values(group, tmp_path):
         node = cfg if package is None else OmegaConf.select(cfg, package)
         diff = _contains(OmegaConf.to_container(node, resolve=False), own, f"{group}={option}")
         assert not diff, "\n".join(diff)
+        check_config("train", cfg)  # and the typed schema takes it
         cfg.paths.output_dir = str(tmp_path)
         OmegaConf.resolve(cfg)
 
@@ -175,8 +178,8 @@ def test_short_run_writes_artifacts(objects_root, tmp_path):
 def test_unknown_override_key_is_one_clear_error(objects_root, tmp_path):
     res = _train(objects_root, tmp_path, "model.no_such_key=3")
     assert res.returncode == 2 and "Traceback" not in res.stderr
-    assert res.stderr.strip() == ("error: config 'model.no_such_key': no such key in conf/train.yaml (a new key is "
-                                  "added with +model.no_such_key=3)")
+    assert res.stderr.strip() == ("error: config 'model.no_such_key': not an argument of nvs.models.net.NVSNet "
+                                  "(on the command line: model.no_such_key=3)")
     res = _train(objects_root, tmp_path, "model=bogus")
     assert res.returncode == 2 and res.stderr.startswith("error: ") and "Available options in 'model'" in res.stderr
     assert "nvs" in res.stderr.split("Available options in 'model':")[1].split()

@@ -8,6 +8,8 @@ Image-space terms are computed on the [-1,1] range, as the paper's code does.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
@@ -54,7 +56,7 @@ class ReconLoss(LossTerm):
     ``n_scales`` (the length of its ``rgb_scales``) must cover the weights.
     """
 
-    def __init__(self, weight: float = 10.0, scale_weights=(1.0, 0.5, 0.2, 0.1), side_upsample: str = "nearest"):
+    def __init__(self, weight: float = 10.0, scale_weights: Sequence[float] = (1.0, 0.5, 0.2, 0.1), side_upsample: str = "nearest"):
         super().__init__(weight)
         self.scale_weights = [float(w) for w in scale_weights]
         if not self.scale_weights:
@@ -95,7 +97,7 @@ class VGGLoss(LossTerm):
     size x size first (the code: 224), or ``null`` for the native size.
     """
 
-    def __init__(self, weight: float = 1.0, layers=("relu1_2", "relu2_2", "relu3_3", "relu4_3"),
+    def __init__(self, weight: float = 1.0, layers: Sequence[str] = ("relu1_2", "relu2_2", "relu3_3", "relu4_3"),
                  image_range: str = "model", size: int | None = 224):
         super().__init__(weight)
         self.image_range = check_choice(image_range, IMAGE_RANGES, "vgg_range")

@@ -8,6 +8,8 @@ to the latent, so there is no skip-only computation to drop (pinned by tests/tes
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 import torch.nn as nn
 
@@ -33,7 +35,7 @@ def _check_levels(levels) -> tuple[str, ...]:
 class _LevelSkips(nn.Module):
     """Skips that pass a chosen list of encoder levels."""
 
-    def __init__(self, levels=("conv0", "conv2", "conv3", "conv4")):
+    def __init__(self, levels: Sequence[str] = ("conv0", "conv2", "conv3", "conv4")):
         super().__init__()
         self.levels = _check_levels(levels)
 
@@ -61,7 +63,7 @@ class _WarpingSkips(_LevelSkips):
 
     needs_depth = True
 
-    def __init__(self, levels=("conv0", "conv2", "conv3", "conv4"), align: str = "code", padding: str = "border",
+    def __init__(self, levels: Sequence[str] = ("conv0", "conv2", "conv3", "conv4"), align: str = "code", padding: str = "border",
                  depth_downsample: str = "nearest", intrinsics_scaling: str = "code"):
         super().__init__(levels)
         check_warp(align, padding)
@@ -120,7 +122,7 @@ class AdaptiveWarpedSkips(_WarpingSkips):
     ``reset_counts``.
     """
 
-    def __init__(self, levels=("conv0", "conv2", "conv3", "conv4"), threshold_px: float = 0.5, align: str = "code",
+    def __init__(self, levels: Sequence[str] = ("conv0", "conv2", "conv3", "conv4"), threshold_px: float = 0.5, align: str = "code",
                  padding: str = "border", depth_downsample: str = "nearest", intrinsics_scaling: str = "code"):
         super().__init__(levels, align, padding, depth_downsample, intrinsics_scaling)
         if not threshold_px >= 0:

@@ -37,7 +37,7 @@ from nvs.models.reference import REFERENCE_MODELS
 from nvs.module.lightning_module import NVSModule
 from nvs.run.build import build_module
 from nvs.run.checkpoint_files import read_checkpoint
-from nvs.run.config_check import model_mismatch
+from nvs.run.run_checks import model_mismatch
 
 
 class CheckpointWriteError(UserError):

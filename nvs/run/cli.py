@@ -73,8 +73,9 @@ def before_hydra(task: str, *checks, rewrite=None) -> None:
 
 
 @contextlib.contextmanager
-def hydra_task(task: str, existing: frozenset[str] = frozenset()):
-    """Inside a Hydra command's ``main()``: its command-line overrides checked (``nvs.run.config_check``), the known
+def hydra_task(task: str, cfg, existing: frozenset[str] = frozenset()):
+    """Inside a Hydra command's ``main()``: its composed config ``cfg`` checked against the command's schema
+    (``nvs.run.config_check``: a wrong type or unknown key, on the command line or in a YAML file), the known
     third-party noise silenced, and, when the block fails, the run directory Hydra made removed, only what this run
     wrote in it (``existing``: what was there before; a multirun job's directory stays: the multirun reports it).
     Yields the run directory."""
@@ -82,13 +83,13 @@ def hydra_task(task: str, existing: frozenset[str] = frozenset()):
     from hydra.types import RunMode
 
     from nvs.run.artifacts import is_global_zero, remove_unstarted_run
-    from nvs.run.config_check import check_cli_overrides
+    from nvs.run.config_check import check_config
     from nvs.run.quiet import silence_known_noise
 
     hc = HydraConfig.get()
     out_dir = Path(hc.runtime.output_dir)
     try:
-        check_cli_overrides(task, hc.overrides.task)
+        check_config(task, cfg, hc.overrides.task)
         silence_known_noise()
         yield out_dir
     except BaseException:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 from omegaconf import DictConfig
@@ -13,9 +14,9 @@ import nvs
 CONF_DIR = (Path(nvs.__file__).resolve().parent / "conf").resolve()
 
 
-def compose_raw(config_name: str, overrides: list[str] | tuple[str, ...] = ()) -> DictConfig:
-    """As :func:`compose`, but Hydra's own exception propagates (for callers that word the error themselves)."""
-    from hydra import compose as hydra_compose
+@contextlib.contextmanager
+def _hydra_at_conf_dir():
+    """Hydra's global state initialised at CONF_DIR for the block; an outer app's state is saved and restored."""
     from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
@@ -25,11 +26,35 @@ def compose_raw(config_name: str, overrides: list[str] | tuple[str, ...] = ()) -
         GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-            return hydra_compose(config_name=config_name, overrides=[str(o) for o in overrides])
+            yield GlobalHydra.instance()
     finally:
         if outer:
             GlobalHydra.instance().clear()
             GlobalHydra.instance().initialize(saved)
+
+
+def compose_raw(config_name: str, overrides: list[str] | tuple[str, ...] = ()) -> DictConfig:
+    """As :func:`compose`, but Hydra's own exception propagates (for callers that word the error themselves)."""
+    from hydra import compose as hydra_compose
+
+    with _hydra_at_conf_dir():
+        return hydra_compose(config_name=config_name, overrides=[str(o) for o in overrides])
+
+
+def merged_files(config_name: str, overrides: list[str] | tuple[str, ...] = ()
+                 ) -> tuple[list[tuple[str, str]], list[tuple[str, str]]]:
+    """What Hydra merges for ``conf/<config_name>.yaml`` with ``overrides``: the config files in merge order as
+    (path under conf/ without .yaml, package: where its keys land, '' for the root), Hydra's own left out, and the
+    overrides that set a key rather than choose a group option, as (key, the override as written)."""
+    from hydra.types import RunMode
+
+    with _hydra_at_conf_dir() as gh:
+        found = gh.config_loader().compute_defaults_list(config_name, [str(o) for o in overrides], RunMode.RUN)
+    files = [(d.config_path, d.package or "") for d in found.defaults
+             if d.config_path and not (d.package or "").startswith("hydra") and not d.config_path.startswith("hydra/")]
+    assigned = [(o.key_or_group, o.input_line) for o in found.overrides.config_overrides
+                if not o.is_sweep_override()]
+    return files, assigned
 
 
 def compose(config_name: str, overrides: list[str] | tuple[str, ...] = (), resolve: bool = False) -> DictConfig:

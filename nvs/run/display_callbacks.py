@@ -1,4 +1,5 @@
-"""Training callbacks of the run's look: a progress bar in optimizer steps, and an image grid at each validation.
+"""Training callbacks of the run's look: a progress bar in optimizer steps (its test bar in pairs), and an image grid at
+each validation.
 
 Both go through Lightning's public hooks and the module's ``forward(batch)``, so they work for every network of the
 forward contract and never touch the training or validation steps.
@@ -21,9 +22,64 @@ from PIL import Image
 from nvs.run.visuals import image_grid, to_uint8_hwc
 
 
-class StepProgressBar(TQDMProgressBar):
+def _test_pairs(trainer: L.Trainer, dataloader_idx: int) -> int | None:
+    """Test pairs this process evaluates from one test loader: its sampler's share (a DDP process's included), at
+    most ``limit_test_batches`` full batches; None where the loader does not say."""
+    loaders = trainer.test_dataloaders
+    loader = loaders[dataloader_idx] if isinstance(loaders, (list, tuple)) else loaders
+    batches = trainer.num_test_batches
+    batches = batches[dataloader_idx] if isinstance(batches, list) else batches
+    sampler, size = getattr(loader, "sampler", None), getattr(loader, "batch_size", None)
+    try:
+        pairs = len(sampler)
+    except TypeError:
+        return None
+    return pairs if size is None or batches == float("inf") else min(pairs, int(batches) * size)
+
+
+def _batch_pairs(batch: Any) -> int:
+    """Pairs in a batch of the data contract (its source images, (B,3,H,W)); 1 for anything else."""
+    src = batch.get("src") if isinstance(batch, dict) else None
+    return int(src.shape[0]) if isinstance(src, torch.Tensor) and src.dim() == 4 else 1
+
+
+class PairTestBar(TQDMProgressBar):
+    """Lightning's tqdm bar whose test bar counts test pairs, not batches (a batch holds eval_batch_size pairs)."""
+
+    @property
+    def test_description(self) -> str:
+        return "test pairs"
+
+    def init_test_tqdm(self) -> Tqdm:
+        # Lightning's test bar, named and paced in pairs (the rate in pairs per second)
+        return Tqdm(desc=self.test_description, unit=" pairs", position=2 * self.process_position,
+                    disable=self.is_disabled, leave=True, dynamic_ncols=True, file=sys.stdout,
+                    bar_format=self.BAR_FORMAT)
+
+    def on_test_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any, batch_idx: int,
+                            dataloader_idx: int = 0) -> None:
+        if not self.has_dataloader_changed(dataloader_idx):
+            return
+        bar = self.test_progress_bar
+        bar.reset(total=_test_pairs(trainer, dataloader_idx))
+        bar.initial = 0
+        several = isinstance(trainer.test_dataloaders, (list, tuple)) and len(trainer.test_dataloaders) > 1
+        bar.set_description(self.test_description + (f" (loader {dataloader_idx})" if several else ""))
+
+    def on_test_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
+                          batch_idx: int, dataloader_idx: int = 0) -> None:
+        bar = self.test_progress_bar
+        if bar is None or bar.disable:
+            return
+        bar.n += _batch_pairs(batch)
+        if (batch_idx + 1) % self.refresh_rate == 0 or bar.n == bar.total:
+            bar.refresh()
+
+
+class StepProgressBar(PairTestBar):
     """Lightning's tqdm bar whose training bar counts optimizer steps toward ``trainer.max_steps`` (or the steps of
-    ``max_epochs``) over the whole run, so its ETA is the run's; validation and test bars are Lightning's own.
+    ``max_epochs``) over the whole run, so its ETA is the run's; the test bar counts pairs (:class:`PairTestBar`), the
+    validation bars are Lightning's own.
 
     A resumed run starts the bar at the step it resumes from; the ETA is measured on the steps of this process
     (averaged over them, validation time included). The bar shows the logged values without the logger's version.

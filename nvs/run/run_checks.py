@@ -22,11 +22,32 @@ from omegaconf import DictConfig, OmegaConf
 
 from nvs.core.errors import UserError
 from nvs.core.legacy import upgrade_targets
-from nvs.run.config_check import model_mismatch
 
 
 def _number(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def model_mismatch(asked: Mapping, held: Mapping, prefix: str = "model") -> str | None:
+    """First difference between the model config a command asks for and the one a checkpoint was trained with.
+
+    ``asked``, ``held``: plain containers (``OmegaConf.to_container``). ``image_size`` follows the checkpoint's data
+    and values still holding an interpolation (``${data.depth_head}``) are the data's business; both are skipped.
+    Returns 'key: the checkpoint has X, the command asks for Y', or None when they agree.
+    """
+    for key in sorted(set(asked) | set(held)):
+        if key == "image_size":
+            continue
+        a, h = asked.get(key, "<absent>"), held.get(key, "<absent>")
+        if isinstance(a, str) and "${" in a:
+            continue
+        if isinstance(a, Mapping) and isinstance(h, Mapping):
+            inner = model_mismatch(a, h, f"{prefix}.{key}")
+            if inner:
+                return inner
+        elif a != h:
+            return f"{prefix}.{key}: the checkpoint has {h!r}, the command asks for {a!r}"
+    return None
 
 
 def check_run_config(cfg: DictConfig) -> None:

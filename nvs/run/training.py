@@ -5,8 +5,6 @@
 
 from __future__ import annotations
 
-import difflib
-import inspect
 import shlex
 import signal
 import time
@@ -18,7 +16,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from lightning.pytorch.utilities.exceptions import SIGTERMException
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from nvs.core.errors import Interrupted, UserError, user_message
 from nvs.data.datamodule import NVSDataModule
@@ -28,9 +26,10 @@ from nvs.run.artifacts import (check_writable, existing_files, is_global_zero, r
 from nvs.run.build import build_data, build_module, choose_precision
 from nvs.run.checkpoint_files import read_checkpoint, resume_checkpoint
 from nvs.run.checkpoints import AtomicCheckpointIO
-from nvs.run.config_check import hydra_value
+from nvs.run.config_check import component_problems
 from nvs.run.csv_log import continue_from
 from nvs.run.loggers import log_run_config
+from nvs.run.overrides import hydra_value
 from nvs.run.precision import Choice
 from nvs.run.quiet import silence_known_noise
 from nvs.run.run_checks import check_batches, check_resume, check_run_config, check_trained, resume_load_error
@@ -46,14 +45,9 @@ def resume_command(out_dir: Path) -> str:
 
 def _trainer(cfg: DictConfig, **kwargs) -> L.Trainer:
     """The Trainer of ``cfg.trainer``; an unknown argument or a value the Trainer refuses is one UserError."""
-    if cfg.trainer.get("_target_") in ("lightning.pytorch.Trainer", "lightning.Trainer",
-                                       "lightning.pytorch.trainer.trainer.Trainer"):
-        known = set(inspect.signature(L.Trainer.__init__).parameters) - {"self"}
-        for key in cfg.trainer:
-            if key != "_target_" and key not in known:
-                hint = difflib.get_close_matches(str(key), known, n=1)
-                raise UserError(f"config 'trainer.{key}': not an argument of lightning.Trainer"
-                                + (f"; did you mean trainer.{hint[0]}?" if hint else ""))
+    problems = component_problems(OmegaConf.to_container(cfg.trainer, resolve=True), "trainer")
+    if problems:  # a library call (not checked at the command line): the trainer's arguments checked here
+        raise UserError("; ".join(f"config '{key}': {why}" for key, why in problems))
     try:
         return instantiate(cfg.trainer, **kwargs)
     except InstantiationException as err:

@@ -23,7 +23,7 @@ from pathlib import Path
 
 from nvs.core.atomic import write_text
 from nvs.core.errors import UserError
-from nvs.run.config_check import hydra_value
+from nvs.run.overrides import hydra_value
 from nvs.sweep import recorder
 from nvs.sweep.jobs import Job, Status, is_hydra, refresh, row_overrides
 from nvs.sweep.progress import Progress

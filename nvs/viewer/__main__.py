@@ -9,7 +9,7 @@ from omegaconf import DictConfig
 
 from nvs.run.cli import exits_cleanly
 from nvs.run.compose import CONF_DIR
-from nvs.run.config_check import check_cli_overrides
+from nvs.run.config_check import check_config
 from nvs.run.quiet import silence_known_noise
 from nvs.viewer.build import build_session
 from nvs.viewer.server import build_app, check_address, serve
@@ -18,7 +18,7 @@ from nvs.viewer.server import build_app, check_address, serve
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="viewer")
 @exits_cleanly
 def main(cfg: DictConfig) -> None:
-    check_cli_overrides("viewer", HydraConfig.get().overrides.task)
+    check_config("viewer", cfg, HydraConfig.get().overrides.task)
     silence_known_noise()
     check_address(cfg.host, cfg.port)  # before the model loads: a taken port is reported at once
     if cfg.threads:

@@ -2,6 +2,8 @@
 
 Objects: size=256 out=data/<category>_<size> seed=0 max_models=N supersample=3 pairs_per_model=30
          workers=<cores, at most 2> (models rendered in that many processes; same files)
+         assets=DIR: the packages scripts/install_object_assets.sh extracted (default: $NVS_ASSETS, else
+         data/assets under the working directory; without it only the installed Debian packages' models)
 Drive:   size=256 out=data/drive_<size> seed=0 sequences=10 frames=200 supersample=3
          sources=stk:2,torcs camera=kitti|wide
 Contact: out=docs/contact_sheet.png chairs=DIR cars=DIR drive=DIR models=4 size=128
@@ -21,8 +23,8 @@ from nvs.run.cli import exits_cleanly
 _INT_KEYS = {"size", "seed", "max_models", "sequences", "frames", "supersample", "pairs_per_model", "models",
              "workers"}
 _KEYS = {
-    "chairs": {"size", "out", "seed", "max_models", "supersample", "pairs_per_model", "workers"},
-    "cars": {"size", "out", "seed", "max_models", "supersample", "pairs_per_model", "workers"},
+    "chairs": {"size", "out", "seed", "max_models", "supersample", "pairs_per_model", "workers", "assets"},
+    "cars": {"size", "out", "seed", "max_models", "supersample", "pairs_per_model", "workers", "assets"},
     "drive": {"size", "out", "seed", "sequences", "frames", "supersample", "sources", "camera"},
     "contact": {"out", "chairs", "cars", "drive", "models", "size"},
     "sheets": {"root", "out", "size"},
@@ -83,10 +85,16 @@ def main(argv: list[str] | None = None) -> None:
 
         render_drive(out, size=size, **opts)
     else:
+        from nvs.data.render.sources import ASSETS_ENV, asset_dir
+
+        assets = asset_dir(opts.pop("assets", None), os.environ.get(ASSETS_ENV))  # before anything is loaded
+        if not assets.is_dir():
+            print(f"render: no extracted asset packages in {assets} (scripts/install_object_assets.sh, assets=DIR "
+                  f"or ${ASSETS_ENV}): the installed Debian packages' models only", flush=True)
         from nvs.data.render.objects import render_objects
 
         opts.setdefault("workers", min(2, os.cpu_count() or 1))
-        render_objects(what, out, size=size, **opts)
+        render_objects(what, out, size=size, assets=assets, **opts)
     print(f"wrote {out}")
 
 

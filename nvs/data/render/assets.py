@@ -15,20 +15,16 @@ import numpy as np
 
 from nvs.data.render import flightgear, more_cars, stk_objects, ufoai
 from nvs.data.render.scene import Part
-from nvs.data.render.sources import (ASSET_DIR, ModelSource, ac3d_parts, read_texture, slug,  # noqa: F401
+from nvs.data.render.sources import (DEFAULT_ASSETS, ModelSource, ac3d_parts, read_texture, slug,  # noqa: F401
                                      trimesh_parts)
 
 SH3D_DIR = Path("/usr/share/sweethome3d/furniture")
-# Sweet Home 3D's own default catalog (package sweethome3d, extracted by scripts/install_object_assets.sh).
-SH3D_JAR = ASSET_DIR / "sweethome3d" / "usr/share/sweethome3d/sweethome3d.jar"
+# Sweet Home 3D's own default catalog (package sweethome3d, extracted by scripts/install_object_assets.sh): a path in
+# the asset folder (nvs.data.render.sources.asset_dir)
+SH3D_JAR = Path("sweethome3d") / "usr/share/sweethome3d/sweethome3d.jar"
 SH3D_DEFAULT_CATALOG = "com/eteks/sweethome3d/io/DefaultFurnitureCatalog.properties"
 TORCS_DIR = Path("/usr/share/games/torcs")
 TRIGGER_ZIP = Path("/usr/share/games/trigger-rally/data.zip")
-COPYRIGHT = {p: Path(f"/usr/share/doc/{p}/copyright")
-             for p in ("sweethome3d-furniture", "torcs-data", "trigger-rally-data")}
-COPYRIGHT.update({"sweethome3d": ASSET_DIR / "sweethome3d" / "usr/share/doc/sweethome3d/copyright",
-                  flightgear.PACKAGE: flightgear.COPYRIGHT, ufoai.PACKAGE: ufoai.COPYRIGHT,
-                  stk_objects.PACKAGE: stk_objects.COPYRIGHT, **more_cars.COPYRIGHT})
 INSTALL_HINT = "install the asset packages with scripts/install_assets.sh"
 
 # ShapeNet's chair class holds chairs, armchairs, stools and lounge chairs; sofas and benches are other classes.
@@ -67,14 +63,25 @@ def _sh3d_loader(catalog: Path, model_path: str, rotation: np.ndarray) -> Callab
     return load
 
 
-def sh3d_models(kind: str) -> list[ModelSource]:
+def copyright_files(assets: Path = DEFAULT_ASSETS) -> dict[str, Path]:
+    """package -> its copyright file: the installed Debian packages' and those extracted in the asset folder."""
+    files = {p: Path(f"/usr/share/doc/{p}/copyright")
+             for p in ("sweethome3d-furniture", "torcs-data", "trigger-rally-data")}
+    files.update({"sweethome3d": Path(assets) / "sweethome3d" / "usr/share/doc/sweethome3d/copyright",
+                  flightgear.PACKAGE: flightgear.copyright_file(assets), ufoai.PACKAGE: ufoai.copyright_file(assets),
+                  stk_objects.PACKAGE: stk_objects.COPYRIGHT, **more_cars.copyright_files(assets)})
+    return files
+
+
+def sh3d_models(kind: str, assets: Path = DEFAULT_ASSETS) -> list[ModelSource]:
     """Seats ('chairs') or cars ('cars') of the Sweet Home 3D furniture catalogs (and of its default catalog,
-    when extracted)."""
+    when extracted in the asset folder)."""
     out = []
     catalogs = [(c, "sweethome3d-furniture", "PluginFurnitureCatalog.properties")
                 for c in sorted(SH3D_DIR.glob("*.sh3f"))]
-    if SH3D_JAR.is_file():
-        catalogs.append((SH3D_JAR, "sweethome3d", SH3D_DEFAULT_CATALOG))
+    jar = Path(assets) / SH3D_JAR
+    if jar.is_file():
+        catalogs.append((jar, "sweethome3d", SH3D_DEFAULT_CATALOG))
     for catalog, package, props_name in catalogs:
         with zipfile.ZipFile(catalog) as z:
             props = _properties(z, props_name)
@@ -218,19 +225,19 @@ def trigger_models() -> list[ModelSource]:
                         f"Trigger Rally vehicle '{n}' (data.zip)", _trigger_loader(n)) for n in names]
 
 
-def category_models(category: str) -> list[ModelSource]:
+def category_models(category: str, assets: Path = DEFAULT_ASSETS) -> list[ModelSource]:
     """All candidate models of 'chairs' or 'cars' whose packages are present, sorted by id.
 
-    FlightGear, UFO:AI, OpenCity, PGDrive and assimp's models are there only after scripts/install_object_assets.sh,
-    SuperTuxKart's after
+    FlightGear, UFO:AI, OpenCity, PGDrive and assimp's models are there only after scripts/install_object_assets.sh
+    has extracted them into the asset folder ``assets`` (nvs.data.render.sources.asset_dir), SuperTuxKart's after
     scripts/install_drive_assets.sh (the full sets).
     """
     if category == "chairs":
-        models = sh3d_models("chairs")
+        models = sh3d_models("chairs", assets)
     elif category == "cars":
-        models = sh3d_models("cars") + torcs_models() + trigger_models() + more_cars.more_cars()
+        models = sh3d_models("cars", assets) + torcs_models() + trigger_models() + more_cars.more_cars(assets)
     else:
         raise ValueError(f"unknown object category {category!r}")
-    models += (flightgear.flightgear_models(category) + ufoai.ufoai_models(category)
+    models += (flightgear.flightgear_models(category, assets) + ufoai.ufoai_models(category, assets)
                + stk_objects.stk_models(category))
     return sorted(models, key=lambda m: m.id)

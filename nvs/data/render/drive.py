@@ -28,7 +28,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from nvs.core.atomic import write_json, write_text
-from nvs.data.render.assets import COPYRIGHT
+from nvs.data.render.assets import copyright_files as object_copyright_files
 from nvs.data.render.depth_stats import DEPTH_BINS, depth_histogram
 from nvs.data.render.drive_plan import Planned, frame_id, pairs_all, pairs_sampled, plan_sequences, split_scenes
 from nvs.data.render.drive_rig import CAMERA_HEIGHT, STEP, camera_K, camera_poses, resample, view_dirs
@@ -135,7 +135,7 @@ def render_drive(out: Path, size: int = 256, seed: int = 0, sequences: int = 10,
         write_text(out / fname, "".join(f"{a} {b}\n" for a, b in pairs))
     used = {(p.scene.source, p.scene.name): p.scene for p in plan}
     packages = sorted({sc.package for sc in used.values()})
-    copyright_files = dict(COPYRIGHT)
+    copyright_files = object_copyright_files()  # the drive sources' packages are installed ones, not extracted
     copyright_files["supertuxkart-data"] = STK_COPYRIGHT
     write_credits(out, [f"{sc.credit}; package {sc.package}; licence: {sc.licence}"
                         for _, sc in sorted(used.items())], packages, copyright_files)

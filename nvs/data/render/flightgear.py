@@ -11,12 +11,9 @@ from pathlib import Path
 
 from nvs.data.render.orient import face_front
 from nvs.data.render.scene import Part
-from nvs.data.render.sources import ASSET_DIR, ModelSource, ac3d_parts, slug
+from nvs.data.render.sources import DEFAULT_ASSETS, ModelSource, ac3d_parts, slug
 
 PACKAGE = "flightgear-data-base"
-ROOT = ASSET_DIR / PACKAGE
-MODELS = ROOT / "usr/share/games/flightgear/Scenery/Models"
-COPYRIGHT = ROOT / "usr/share/doc/flightgear-data-base/copyright"
 LICENCE = "GPL-2+ (flightgear-data-base)"
 
 # Road cars, SUVs, pickups and vans (ShapeNet's car class), by folder; not buses, trucks or airport machinery.
@@ -45,24 +42,38 @@ FRONT_DEFAULT = {"x": "-x", "z": "-z"}  # x: FlightGear's convention (x towards 
 FRONT = {"it_policecar1": "+z", "vwgolfsilver": "+z"}
 
 
-def _loader(path: Path, name: str):
+def root(assets: Path) -> Path:
+    """Where the package is extracted in the asset folder ``assets`` (nvs.data.render.sources.asset_dir)."""
+    return Path(assets) / PACKAGE
+
+
+def copyright_file(assets: Path) -> Path:
+    return root(assets) / "usr/share/doc/flightgear-data-base/copyright"
+
+
+def _models(assets: Path) -> Path:
+    return root(assets) / "usr/share/games/flightgear/Scenery/Models"
+
+
+def _loader(path: Path, name: str, models: Path):
     def load() -> list[Part]:
-        parts = ac3d_parts(path, [path.parent, path.parent.parent / "Textures", MODELS / "Textures"])
+        parts = ac3d_parts(path, [path.parent, path.parent.parent / "Textures", models / "Textures"])
         return face_front(parts, str(path), FRONT.get(name, FRONT_DEFAULT))
 
     return load
 
 
-def flightgear_models(kind: str) -> list[ModelSource]:
-    """The FlightGear cars ('cars') or chairs ('chairs') present under data/assets (none when not extracted)."""
+def flightgear_models(kind: str, assets: Path = DEFAULT_ASSETS) -> list[ModelSource]:
+    """The FlightGear cars ('cars') or chairs ('chairs') present in the asset folder (none when not extracted)."""
     table = CARS if kind == "cars" else CHAIRS
+    models = _models(assets)
     out = []
     for folder, names in table.items():
         for name in names:
-            path = MODELS / folder / f"{name}.ac"
+            path = models / folder / f"{name}.ac"
             if not path.is_file():
                 continue
             out.append(ModelSource(slug("fg", name), name, PACKAGE, LICENCE,
                                    f"FlightGear scenery model Scenery/Models/{folder}/{name}.ac "
-                                   "(authors: flightgear-data-base AUTHORS)", _loader(path, name)))
+                                   "(authors: flightgear-data-base AUTHORS)", _loader(path, name, models)))
     return out

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from nvs.data.render.orient import face_front
 from nvs.data.render.scene import Part
-from nvs.data.render.sources import ASSET_DIR, ModelSource, ac3d_parts, slug, trimesh_parts
+from nvs.data.render.sources import DEFAULT_ASSETS, ModelSource, ac3d_parts, slug, trimesh_parts
 
 OPENCITY = "usr/share/games/opencity/graphism/vehicle"
 PGDRIVE = "pgdrive/assets/models"
@@ -37,7 +37,11 @@ PACKAGES = {
 }
 SLUG = {"opencity-data": "oc", "pgdrive": "pgdrive", "assimp-testmodels": "assimp"}
 NOTE = {"jeep": "jeep1.ms3d converted by assimp; 'Jeep designed, modelled and skinned by Psionic' (jeep1.readme.txt)"}
-COPYRIGHT = {pkg: ASSET_DIR / pkg / rel for pkg, (_, rel, _) in PACKAGES.items()}
+
+
+def copyright_files(assets: Path) -> dict[str, Path]:
+    """package -> its copyright / licence file in the asset folder ``assets``."""
+    return {pkg: Path(assets) / pkg / rel for pkg, (_, rel, _) in PACKAGES.items()}
 
 
 def _load(path: Path) -> list[Part]:
@@ -54,12 +58,12 @@ def _gltf_credit(path: Path) -> tuple[str, str] | None:
                               f"({extras.get('source', 'no source given')})"
 
 
-def more_cars() -> list[ModelSource]:
-    """The cars of these packages that are present under data/assets (none when not extracted)."""
+def more_cars(assets: Path = DEFAULT_ASSETS) -> list[ModelSource]:
+    """The cars of these packages that are present in the asset folder (none when not extracted)."""
     out = []
     for pkg, (licence, _, files) in PACKAGES.items():
         for name, rel in files.items():
-            path = ASSET_DIR / pkg / rel
+            path = Path(assets) / pkg / rel
             if not path.is_file():
                 continue
             lic, credit = licence, f"{pkg} model {rel}" + (f" ({NOTE[name]})" if name in NOTE else "")

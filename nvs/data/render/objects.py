@@ -12,7 +12,8 @@ import time
 from pathlib import Path
 
 from nvs.core.atomic import write_json, write_text
-from nvs.data.render.assets import COPYRIGHT, ModelSource, category_models
+from nvs.data.render.assets import ModelSource, category_models, copyright_files
+from nvs.data.render.sources import DEFAULT_ASSETS
 # the per-model view geometry lives with the render job; re-exported for the dataset's readers and tests
 from nvs.data.render.object_jobs import (AZIMUTHS, CENTRE, ELEVATIONS, K256, Job, Result, Runner,  # noqa: F401
                                          camera_to_object, geometry_signature, is_done, normalised,
@@ -74,15 +75,17 @@ def _remove_views(root: Path, model: str) -> None:
 
 def render_objects(category: str, out: Path, size: int = 256, seed: int = 0, max_models: int | None = None,
                    sources: list[ModelSource] | None = None, supersample: int = 3, pairs_per_model: int = 30,
-                   progress: bool = True, workers: int = 1) -> dict:
+                   progress: bool = True, workers: int = 1, assets: Path = DEFAULT_ASSETS) -> dict:
     """Render a category into `out` (ShapeNet-renders format plus depth/, id_val/id_test, meta.json, CREDITS).
-    `workers` > 1 renders models in that many forked processes (same files; see nvs.data.render.object_jobs)."""
+    `workers` > 1 renders models in that many forked processes (same files; see nvs.data.render.object_jobs).
+    `assets`: the folder of extracted asset packages (nvs.data.render.sources.asset_dir)."""
     from tqdm import tqdm
 
     out = Path(out)
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers={workers!r}: expected an integer >= 1")
-    sources = category_models(category) if sources is None else sources
+    assets = Path(assets).resolve()
+    sources = category_models(category, assets) if sources is None else sources
     by_id = {m.id: m for m in sources}
     order = sorted(sources, key=lambda m: m.id)
     random.Random(seed).shuffle(order)  # max_models takes a seeded sample; failures are replaced by the next
@@ -144,7 +147,7 @@ def render_objects(category: str, out: Path, size: int = 256, seed: int = 0, max
     by_id = {m.id: m for m in used}
     packages = sorted({m.package for m in used})
     write_credits(out, [f"{m.id}: {m.credit}; package {m.package}; licence: {m.licence}" for m in
-                        (by_id[i] for i in ids)], packages, COPYRIGHT)
+                        (by_id[i] for i in ids)], packages, copyright_files(assets))
     meta = {
         "format": "objects",
         "category": CATEGORY_NAME[category],

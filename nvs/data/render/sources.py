@@ -12,12 +12,29 @@ from typing import Callable
 import numpy as np
 from PIL import Image
 
+from nvs.core.errors import UserError
 from nvs.data.render.ac3d import read_ac3d, triangles
 from nvs.data.render.scene import Part
 
-# Packages too large to install (flightgear-data-base, ufoai-data) are extracted here, their own paths kept, by
-# scripts/install_object_assets.sh.
-ASSET_DIR = Path(__file__).resolve().parents[3] / "data" / "assets"
+# Packages too large to install (flightgear-data-base, ufoai-data, ...) are extracted into one folder, their own paths
+# kept, by scripts/install_object_assets.sh [DIR]. The render command finds it as assets=DIR, else $NVS_ASSETS, else
+# data/assets under the working directory (the checkout when run from its root; an installed package has none).
+DEFAULT_ASSETS = Path("data") / "assets"
+ASSETS_ENV = "NVS_ASSETS"
+
+
+def asset_dir(option: str | None = None, env: str | None = None) -> Path:
+    """The folder of extracted asset packages: ``option`` (the command's assets=DIR), else ``env`` (the value of
+    $NVS_ASSETS), else data/assets under the working directory. One that was asked for and is not a directory is a
+    UserError; the default may be absent (the models of the installed Debian packages are rendered alone)."""
+    for given, name in ((option, "assets"), (env, ASSETS_ENV)):
+        if given:
+            path = Path(given).expanduser()
+            if not path.is_dir():
+                raise UserError(f"{name}={given}: no such directory (extract the asset packages into it with "
+                                f"scripts/install_object_assets.sh {given}, or leave {name} unset for data/assets)")
+            return path.resolve()
+    return DEFAULT_ASSETS.resolve()
 
 
 @dataclass

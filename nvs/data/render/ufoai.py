@@ -16,12 +16,9 @@ import numpy as np
 from nvs.data.render.md2 import read_md2
 from nvs.data.render.orient import face_front
 from nvs.data.render.scene import Part
-from nvs.data.render.sources import ASSET_DIR, ModelSource, dep5_licence, read_texture, slug
+from nvs.data.render.sources import DEFAULT_ASSETS, ModelSource, dep5_licence, read_texture, slug
 
 PACKAGE = "ufoai-data"
-ROOT = ASSET_DIR / PACKAGE
-OBJECTS = ROOT / "usr/share/games/ufoai/base/models/objects"
-COPYRIGHT = ROOT / "usr/share/doc/ufoai-data/copyright"
 
 # (body md2, wheel md2s) relative to models/objects/. Not cars: the box trailer, the optional roof racks, the
 # armoured 'puma' (a turret gun).
@@ -78,25 +75,36 @@ def md2_part(path: Path) -> Part:
     return Part(mesh.positions @ _MD2_TO_YUP.T, mesh.faces, mesh.uvs, image, np.ones(4))
 
 
-def _loader(body: str, wheels: list[str]):
+def root(assets: Path) -> Path:
+    """Where the package is extracted in the asset folder ``assets`` (nvs.data.render.sources.asset_dir)."""
+    return Path(assets) / PACKAGE
+
+
+def copyright_file(assets: Path) -> Path:
+    return root(assets) / "usr/share/doc/ufoai-data/copyright"
+
+
+def _loader(body: str, wheels: list[str], objects: Path):
     def load() -> list[Part]:
-        parts = [md2_part(OBJECTS / f"{m}.md2") for m in [body, *wheels]]
+        parts = [md2_part(objects / f"{m}.md2") for m in [body, *wheels]]
         return face_front(parts, body, FRONT.get(body, FRONT_DEFAULT if body.startswith("cars/") else "+z"))
 
     return load
 
 
-def ufoai_models(kind: str) -> list[ModelSource]:
-    """The UFO:AI cars ('cars') or chairs ('chairs') present under data/assets (none when not extracted)."""
+def ufoai_models(kind: str, assets: Path = DEFAULT_ASSETS) -> list[ModelSource]:
+    """The UFO:AI cars ('cars') or chairs ('chairs') present in the asset folder (none when not extracted)."""
     table = CARS if kind == "cars" else CHAIRS
-    text = COPYRIGHT.read_text(errors="replace") if COPYRIGHT.is_file() else ""
+    objects = root(assets) / "usr/share/games/ufoai/base/models/objects"
+    notice = copyright_file(assets)
+    text = notice.read_text(errors="replace") if notice.is_file() else ""
     out = []
     for body, wheels in table.items():
-        if not (OBJECTS / f"{body}.md2").is_file():
+        if not (objects / f"{body}.md2").is_file():
             continue
         name = body.split("/", 1)[1]
         who, lic = dep5_licence(text, f"base/models/objects/{body}.md2")
         out.append(ModelSource(slug("ufoai", name), name, PACKAGE, f"{lic} (ufoai-data)",
                                f"UFO:AI map object models/objects/{body}.md2 (base/0models.pk3), (c) {who}",
-                               _loader(body, wheels)))
+                               _loader(body, wheels, objects)))
     return out
