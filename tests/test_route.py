@@ -92,7 +92,7 @@ def test_the_routed_network_reads_the_predicted_depth(tmp_path):
     assert torch.isinf(f["pose_px"]).all()  # no depth head, no range: the pose alone bounds nothing, nothing copied
 
 
-# -- only what a route needs runs ----------------------------------------------------------------------------------------
+# -- only what a route needs runs --------------------------------------------------------------------------------------
 def _count_calls(module: torch.nn.Module) -> list[int]:
     sizes: list[int] = []
     module.register_forward_hook(lambda m, args, out: sizes.append(args[0].shape[0]))
@@ -132,7 +132,7 @@ def test_costs_are_counted_flops_with_copy_free_and_full_whole(tmp_path):
     assert costs["copy"] == 0.0 and costs["full"] == 1.0 and 0.2 < costs["warp"] < 0.9
 
 
-# -- the fit -------------------------------------------------------------------------------------------------------------
+# -- the fit -----------------------------------------------------------------------------------------------------------
 COSTS = {"copy": 0.0, "warp": 0.5, "full": 1.0}
 # six pairs: copying is good for small motions, warping for small disocclusions, the full decoder 0.3 everywhere
 TABLE = ({"pose_px": np.array([0.0, 1, 5, 10, 20, 40]), "disocclusion": np.array([0.0, 0, 0.01, 0.02, 0.2, 0.5]),
@@ -195,7 +195,7 @@ def test_the_fit_refuses_what_it_cannot_fit():
         fit_rule(TABLE[0], {**TABLE[1], "full": np.full(6, np.nan)}, COSTS, 0.01)
 
 
-# -- the rule file -------------------------------------------------------------------------------------------------------
+# -- the rule file -----------------------------------------------------------------------------------------------------
 CKPT = {KEY: "ab" * 32, "path": "runs/x/checkpoints/last.ckpt"}
 
 
@@ -241,7 +241,7 @@ def test_a_route_option_that_is_no_file_is_one_error(tmp_path):
         route_option(str(tmp_path / "nope.json"))
 
 
-# -- the viewer's switch -------------------------------------------------------------------------------------------------
+# -- the viewer's switch -----------------------------------------------------------------------------------------------
 def test_the_viewer_routes_a_view_when_asked_and_names_the_route(tmp_path):
     from nvs.viewer.controls import ObjectControls
     from nvs.viewer.server import view_json
@@ -338,6 +338,25 @@ def test_evaluate_fits_writes_and_reloads_the_rule_and_reports_the_routes(random
         _evaluate(tmp_path, random_ckpt, f"route={other}")
     with pytest.raises(UserError, match="route=bogus: no such file"):
         _evaluate(tmp_path, random_ckpt, "route=bogus")
+
+
+def test_the_viewer_offers_the_switch_for_a_rule_of_its_checkpoint(random_ckpt, tmp_path):
+    from nvs.run.compose import compose
+    from nvs.viewer.build import build_session
+
+    rule = tmp_path / "route_rule.json"
+    sha = torch.load(random_ckpt, weights_only=False)[KEY]
+    write_rule(rule, _payload(checkpoint={"path": str(random_ckpt), "weights_sha256": sha}))
+    cfg = compose("viewer", [f"ckpt_path={random_ckpt}", f"route={rule}", "gallery=1", f"paths.root_dir={tmp_path}",
+                             "precision=32-true"])
+    cfg.paths.output_dir = str(tmp_path)
+    session, meta = build_session(cfg)
+    assert meta["route"]["rule"] == RouteRule(5.0, 0.02, 4.0).as_dict() and session.router.rule.copy_pose_px == 5.0
+    first = next(iter(session.gallery.values()))
+    assert session.view(first.key, session.controls.initial(first.meta), route=True).route in ROUTES
+    write_rule(rule, _payload())  # fitted on other weights
+    with pytest.raises(UserError, match="fitted on other weights"):
+        build_session(cfg)
 
 
 def test_the_new_evaluate_keys_leave_committed_evaluations_current(tmp_path):

@@ -2,8 +2,8 @@
 
 GET  /                  the page (static/index.html; static/viewer.js, static/viewer.css under /static)
 GET  /api/info          model, controls (axes and trained ranges) and the gallery (PNG data URLs)
-GET  /api/view?source=<key>&<axis>=<value>...[&route=1]   one view: {rgb, depth (PNG data URLs), depth_range,
-                        model_ms, route, route_features, ...}; route=1 through the fitted route rule (route=<file>)
+GET  /api/view?source=<key>&<axis>=<value>...[&route=1]  one view: {rgb, depth (PNG data URLs),
+                        depth_range, model_ms, route, route_features, ...}; route=1: through the fitted route rule
 POST /api/upload        multipart form field 'image' -> a new source {key, label, image, initial}
 GET  /api/ply?source=<key>&<axis>=<value>...    the view's predicted depth as a coloured point cloud (PLY download)
 GET  /api/video?source=<key>&path=orbit|forward&frames=N&fps=F   {gif, mp4 (data URLs), frames, ms} (nvs/viewer/video.py)
