@@ -2,6 +2,10 @@
 
 Reference models that need no training are evaluated without a checkpoint: ``model=copy_source``, ``gt_warp``,
 ``mean_depth`` or ``gt_plane`` (nvs.models.reference.REFERENCE_MODELS).
+
+Skipping at inference (docs/skipping.md): ``route=fit`` or ``route=<route_rule.json>`` routes each pair to copy, warp
+or the full decoder (``nvs.run.routing``); ``skips_threshold=calibrate`` picks the adaptive skips' threshold on the
+validation pairs (``nvs.run.skips_calibration``).
 """
 
 from __future__ import annotations
@@ -19,7 +23,11 @@ from nvs.run.build import build_data
 from nvs.run.checkpoints import restore_module, restore_run_config
 from nvs.run.cli import before_hydra, exits_cleanly, hydra_task
 from nvs.run.display_callbacks import PairTestBar
+from nvs.run.inference_skipping import skip_at_inference
 from nvs.run.precision import Choice, choose
+from nvs.run.routing import RULE_FILE, route_option, write_rule
+from nvs.run.skips_calibration import threshold_option
+from nvs.run.validation_pass import Calibration
 from nvs.run.artifacts import (check_writable, is_global_zero, run_record, summary_line, test_record,
                                write_run_results)
 from nvs.run.compose import CONF_DIR
@@ -41,11 +49,15 @@ def _evaluate(cfg: DictConfig, out_dir: Path, stop: SignalStop) -> dict:
     limit = cfg.get("limit")
     if limit is not None and (isinstance(limit, bool) or not isinstance(limit, int) or limit < 1):
         raise UserError(f"limit={limit}: expected a positive number of test pairs (limit=null: all of them)")
+    route, threshold = route_option(cfg.get("route")), threshold_option(cfg.get("skips_threshold"))
+    settings = Calibration.from_config(cfg.get("calibration"))
     run, ckpt = restore_run_config(cfg)
     asked = _size_override()
     if ckpt is not None and asked is not None and asked != str(run.data.size):
         raise UserError(f"data.size={asked}: {cfg.ckpt_path} was trained at {run.data.size}x{run.data.size} and is "
                         "evaluated at that size; drop data.size")
+    if ckpt is None and (route or threshold is not None):
+        raise UserError("route / skips_threshold act on a trained network: give ckpt_path=...")
     L.seed_everything(int(run.seed), workers=True)
     datamodule = build_data(run)
     datamodule.validate(("test",))
@@ -57,11 +69,13 @@ def _evaluate(cfg: DictConfig, out_dir: Path, stop: SignalStop) -> dict:
     if is_global_zero():
         check_writable(out_dir)
     placement = OmegaConf.to_container(cfg.trainer) if cfg.get("trainer") else {}
+    # skipping at inference (off by default): metrics.json's extra entries, and a rule fitted here to write
+    extra, rule_file = skip_at_inference(module, datamodule, ckpt, route, threshold, settings, placement, precision)
     try:
         # the test bar counts test pairs, with elapsed time and ETA (+trainer.enable_progress_bar=false: none)
-        settings = {"enable_progress_bar": True, **placement}
-        bar = [PairTestBar()] if settings["enable_progress_bar"] else []
-        trainer = L.Trainer(**settings, callbacks=[stop, *bar], precision=precision, logger=False,
+        trainer_args = {"enable_progress_bar": True, **placement}
+        bar = [PairTestBar()] if trainer_args["enable_progress_bar"] else []
+        trainer = L.Trainer(**trainer_args, callbacks=[stop, *bar], precision=precision, logger=False,
                             enable_model_summary=False)
     except Exception as err:  # noqa: BLE001 - a placement the Trainer refuses (devices, strategy) is the user's
         raise UserError(f"config 'trainer': {user_message(err) or f'{err.__class__.__name__}: {err}'}") from None
@@ -69,8 +83,10 @@ def _evaluate(cfg: DictConfig, out_dir: Path, stop: SignalStop) -> dict:
     trainer.test(module, datamodule=datamodule, verbose=False)
     elapsed = time.perf_counter() - t0
     tested = f"checkpoint {cfg.ckpt_path}" if cfg.ckpt_path else "a reference model (nothing trained)"
-    result = {**run_record(module, run, choice), **test_record(module, elapsed, cfg.ckpt_path, tested)}
+    result = {**run_record(module, run, choice), **test_record(module, elapsed, cfg.ckpt_path, tested), **extra}
     if trainer.is_global_zero:  # the rows are gathered from every rank: one writer
+        if rule_file is not None:
+            write_rule(out_dir / RULE_FILE, rule_file)
         write_run_results(out_dir, result, module.test_rows)
     return result
 
@@ -140,7 +156,8 @@ def main(cfg: DictConfig) -> None:
     if not is_global_zero():
         return
     print(summary_line(result["test"]))
-    print(f"wrote {out_dir / 'metrics.json'} and {out_dir / 'test_per_image.csv'}")
+    print(f"wrote {out_dir / 'metrics.json'} and {out_dir / 'test_per_image.csv'}"
+          + (f" and {out_dir / RULE_FILE}" if cfg.get("route") == "fit" else ""))
 
 
 def main_cli() -> None:

@@ -55,6 +55,30 @@ class EncodeOnce(Protocol):
 
 
 @runtime_checkable
+class DepthBeforePixels(Protocol):
+    """A network that predicts the target depth before, and apart from, its pixel decoder (``NVSNet``): a router
+    (``nvs.models.route``) reads the depth and runs ``decode_pixels`` only for the pairs that need it.
+
+    ``predict_depth(encoded, batch) -> (z_t, depth (B,1,S,S))`` and ``decode_pixels(encoded, z_t, depth, batch) ->
+    rgb_scales``; both are per sample (any subset of a batch gives that subset's rows)."""
+
+    def encode(self, src: torch.Tensor) -> Any: ...
+
+    def predict_depth(self, encoded: Any, batch: Batch) -> tuple[torch.Tensor, torch.Tensor]: ...
+
+    def decode_pixels(self, encoded: Any, z_t: torch.Tensor, depth: torch.Tensor,
+                      batch: Batch) -> list[torch.Tensor]: ...
+
+
+@runtime_checkable
+class DepthRange(Protocol):
+    """A depth parameterisation whose every output lies in ``[min_depth, max_depth]`` (the depth heads)."""
+
+    min_depth: float
+    max_depth: float
+
+
+@runtime_checkable
 class CountsSkips(Protocol):
     """A component that skips work per sample and counts it: ``skip_fractions`` per level and ``"all"``."""
 

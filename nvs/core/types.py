@@ -45,6 +45,10 @@ class Extras:
 # Output of models that blend several full-resolution predictions (Sun et al.): {branch name: (B,3,H,W) in [0,1]}.
 RGB_BRANCHES = "rgb_branches"
 
+# What a routed network (nvs.models.route) did per pair: copied the source, warped it by the predicted depth, or ran
+# the full pixel decoder. ``Outputs["route"]`` holds indices into this tuple.
+ROUTES = ("copy", "warp", "full")
+
 
 class Outputs(TypedDict):
     """What a network's ``forward(batch, needs) -> outputs`` returns: ``rgb`` and ``rgb_scales`` always, the rest when
@@ -59,6 +63,8 @@ class Outputs(TypedDict):
     warp_valid: NotRequired[Tensor]  # (B,1,H,W) in {0,1}: the warped pixel's source point is in front, in the image
     rgb_branches: NotRequired[dict[str, Image]]  # RGB_BRANCHES
     confidence: NotRequired[Tensor]  # (B,2,H,W) softmax blending weights (flow, pixel) of Sun et al.'s model
+    route: NotRequired[Tensor]  # (B,) long: the route each pair took, an index into ROUTES (a routed network)
+    route_features: NotRequired[dict[str, Tensor]]  # {feature: (B,)} the routing rule read (NaN: not computed)
 
 
 def to_model_range(img: Tensor) -> Tensor:

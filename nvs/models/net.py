@@ -73,12 +73,12 @@ class NVSNet(nn.Module):
 
     def render(self, encoded: Encoded, batch: Batch, needs: frozenset[str] = frozenset()) -> Outputs:
         """Everything that depends on the pose (``batch``'s K, T_tgt_src, pivot; src/tgt only for the extras)."""
-        z_s, feats = encoded
+        z_s, _ = encoded
         K, T = batch["K"], batch["T_tgt_src"]
-        z_t = transform_latent(z_s, T, batch["pivot"], self.latent_rotation)
+        z_t = self._target_latent(z_s, batch)
         out: Outputs = decode_depths(self.encoder, self.depth, z_s, z_t, batch, needs)
         depth = out["depth"]
-        rgb_scales = self.pixel_decoder(z_t, self.skips(feats, depth, K, T))
+        rgb_scales = self.decode_pixels(encoded, z_t, depth, batch)
         out["rgb_scales"] = rgb_scales
         out["rgb"] = to_image_range(rgb_scales[-1])
         if Extras.WARPED_SRC in needs:
@@ -86,3 +86,17 @@ class NVSNet(nn.Module):
             out[Extras.WARPED_SRC], out["warp_valid"] = warp(src, depth.to(src.dtype), K, T, self.warp_align,
                                                              self.warp_padding)
         return out
+
+    def _target_latent(self, z_s: torch.Tensor, batch: Batch) -> torch.Tensor:
+        return transform_latent(z_s, batch["T_tgt_src"], batch["pivot"], self.latent_rotation)
+
+    def predict_depth(self, encoded: Encoded, batch: Batch) -> tuple[torch.Tensor, torch.Tensor]:
+        """The pose step up to the target depth, no pixel decoder: -> z~_t (B,n,3), depth (B,1,S,S)."""
+        z_s, _ = encoded
+        z_t = self._target_latent(z_s, batch)
+        return z_t, decode_depths(self.encoder, self.depth, z_s, z_t, batch, frozenset())["depth"]
+
+    def decode_pixels(self, encoded: Encoded, z_t: torch.Tensor, depth: torch.Tensor,
+                      batch: Batch) -> list[torch.Tensor]:
+        """The skips warped by ``depth`` and the pixel decoder: -> rgb_scales (coarse -> fine, [-1,1])."""
+        return self.pixel_decoder(z_t, self.skips(encoded[1], depth, batch["K"], batch["T_tgt_src"]))

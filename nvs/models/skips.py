@@ -8,6 +8,7 @@ to the latent, so there is no skip-only computation to drop (pinned by tests/tes
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Sequence
 
 import torch
@@ -119,7 +120,8 @@ class AdaptiveWarpedSkips(_WarpingSkips):
     so the output equals the unwarped features (which the exact warp, ``align=exact``, reproduces up to round-off;
     the code's alignment shifts even an identity warp, so there skipping is not output-preserving);
     ``threshold_px=0`` warps everything, as ``WarpedSkips``. Counts of skipped warps per level accumulate until
-    ``reset_counts``.
+    ``reset_counts``; ``last_bounds`` holds the last forward's bounds per level. ``nvs.evaluate
+    skips_threshold=calibrate`` picks threshold_px on the validation pairs (``nvs.run.skips_calibration``).
     """
 
     def __init__(self, levels: Sequence[str] = ("conv0", "conv2", "conv3", "conv4"), threshold_px: float = 0.5, align: str = "code",
@@ -130,10 +132,22 @@ class AdaptiveWarpedSkips(_WarpingSkips):
         self.threshold_px = float(threshold_px)
         self.reset_counts()
 
+    @contextlib.contextmanager
+    def per_sample_threshold(self, threshold_px: torch.Tensor):
+        """Within the block sample b's threshold is ``threshold_px[b]`` ((B,) float64 on the features' device): the
+        threshold calibration's table (``nvs.run.skips_calibration``) evaluates each pair at its own thresholds."""
+        kept = self.threshold_px
+        self.threshold_px = threshold_px
+        try:
+            yield
+        finally:
+            self.threshold_px = kept
+
     def reset_counts(self) -> None:
         # Plain integers, not buffers: counts are per process and never belong in a checkpoint.
         self.skipped = dict.fromkeys(self.levels, 0)
         self.seen = dict.fromkeys(self.levels, 0)
+        self.last_bounds: dict[str, torch.Tensor] = {}  # {level: (B,) float64} of the last forward
 
     def skip_fractions(self) -> dict[str, float]:
         """Fraction of (sample, level) warps skipped since the last reset: per level and over all levels ('all')."""
@@ -150,7 +164,8 @@ class AdaptiveWarpedSkips(_WarpingSkips):
         for lv in self.levels:
             f = feats[lv]
             d, Ks = self.at_level(lv, f, depth, K)
-            warp = level_displacement(d, Ks, T_tgt_src) >= self.threshold_px
+            bound = self.last_bounds[lv] = level_displacement(d, Ks, T_tgt_src)
+            warp = bound >= self.threshold_px
             idx = warp.nonzero()[:, 0]
             n = idx.numel()
             self.seen[lv] += f.shape[0]

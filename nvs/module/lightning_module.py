@@ -17,6 +17,7 @@ from nvs.core.types import Batch
 from nvs.core.weights_digest import stamp
 from nvs.metrics import per_image as M
 from nvs.module.gather import gather_rows, gather_sum
+from nvs.module.test_summary import metric_means, route_columns, route_summary
 
 
 class NonFiniteLossError(UserError, RuntimeError):
@@ -223,6 +224,7 @@ class NVSModule(L.LightningModule):
         for i, index in enumerate(self._indices(batch, len(self.test_rows))):
             row = {"index": index, "id_src": batch["id_src"][i], "id_tgt": batch["id_tgt"][i]}
             row.update({k: float(v[i]) for k, v in values.items()})
+            row.update(route_columns(out, i))
             self.test_rows.append(row)
 
     def on_test_epoch_end(self):
@@ -230,7 +232,8 @@ class NVSModule(L.LightningModule):
         self.test_rows_seen = gather_sum(float(len(self.test_rows)))
         self.test_forward_s = gather_sum(self.test_forward_s)
         self.test_rows = gather_rows(self.test_rows)
-        means = {f"test/{k}": float(v) for k, v in self.test_summary().items() if k != "n_pairs" and not math.isnan(v)}
+        means = {f"test/{k}": float(v) for k, v in self.test_summary().items()
+                 if k != "n_pairs" and v is not None and not math.isnan(v)}
         self.log_dict({**means, "step": float(self.global_step)}, sync_dist=True)  # identical on every rank
 
     def on_test_epoch_start(self):
@@ -251,17 +254,13 @@ class NVSModule(L.LightningModule):
     def test_summary(self) -> dict[str, float]:
         """Mean of every per-image metric over the test pairs (NaN entries, e.g. no valid depth, are ignored), and
         for a model that skips warps the fraction of (sample, level) warps it skipped: ``warp_skipped`` over all
-        levels, ``warp_skipped_<level>`` per level."""
-        keys = [k for k in (self.test_rows[0] if self.test_rows else {}) if k not in ("id_src", "id_tgt", "index")]
-        summary = {}
-        for k in keys:
-            vals = [r[k] for r in self.test_rows if not math.isnan(r[k])]
-            summary[k] = sum(vals) / len(vals) if vals else float("nan")
-        summary["n_pairs"] = len(self.test_rows)
+        levels, ``warp_skipped_<level>`` per level; for a routed network the share of pairs of each route,
+        ``route_share_<route>``, and its mean L1, ``route_l1_<route>`` (None without pairs)."""
+        summary = {**metric_means(self.test_rows), "n_pairs": len(self.test_rows)}
         for counter in self._skip_counters():
             for level, fraction in counter.skip_fractions().items():
                 summary["warp_skipped" if level == "all" else f"warp_skipped_{level}"] = fraction
-        return summary
+        return {**summary, **route_summary(self.test_rows)}
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         # The resolved run config travels with the weights so that evaluation can rebuild the same network.

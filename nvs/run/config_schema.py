@@ -141,6 +141,13 @@ class Train:  # conf/train.yaml
 
 
 @dataclass
+class Calibration:  # evaluate's fits of a route rule and of the adaptive threshold (nvs.run.validation_pass)
+    tolerance: float = _typed()
+    val_pairs: Optional[int] = _typed()
+    candidates: int = _typed()
+
+
+@dataclass
 class Evaluate:  # conf/evaluate.yaml
     paths: Paths = _typed()
     data: Optional[Data] = _typed()
@@ -153,6 +160,9 @@ class Evaluate:  # conf/evaluate.yaml
     limit: Optional[int] = _typed()
     precision: Optional[str] = _typed()
     out_dir: str = _typed()
+    route: Any = _typed()  # off, fit or a rule file (nvs.run.routing.route_option)
+    skips_threshold: Any = _typed()  # null, calibrate or pixels (nvs.run.skips_calibration.threshold_option)
+    calibration: Calibration = _typed()
 
 
 @dataclass
@@ -185,6 +195,7 @@ class Viewer(_Tool):  # conf/viewer.yaml
     host: str = _typed()
     port: int = _typed()
     threads: Optional[int] = _typed()
+    route: Optional[str] = _typed()  # a route_rule.json fitted on the checkpoint
     load: ViewerLoad = _typed()
     screenshot: ViewerScreenshot = _typed()
 

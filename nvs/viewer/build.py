@@ -14,6 +14,7 @@ from nvs.core.errors import UserError
 from nvs.run.build import build_data
 from nvs.run.checkpoints import restore_module, restore_run_config
 from nvs.run.precision import choose
+from nvs.run.routing import read_rule, routed
 from nvs.viewer.controls import build_controls
 from nvs.viewer.session import Source, ViewSession
 
@@ -51,10 +52,16 @@ def build_session(cfg: DictConfig, extra_ids: tuple[str, ...] = ()) -> tuple[Vie
         if fid not in picked:
             picked.append(fid)
     gallery = [Source(f"g{i}", fid, test.cache.get(fid)[0], controls.source_meta(fid)) for i, fid in enumerate(picked)]
+    router, route = None, None
+    if cfg.get("route"):  # a rule fitted by nvs.evaluate route=fit on this checkpoint: the page offers the switch
+        rule, payload = read_rule(cfg.route, ckpt)
+        router = routed(module, rule)
+        route = {"file": str(cfg.route), "rule": payload["rule"], "validation": payload["validation"]}
     session = ViewSession(module.net, int(run.data.size), test.K, test.pivot, controls, gallery,
-                          choice.autocast_dtype, channels_last=choice.channels_last)
+                          choice.autocast_dtype, channels_last=choice.channels_last, router=router)
     meta = {"model": module.model_name, "data": run.data.get("name"), "checkpoint": cfg.ckpt_path,
-            "precision": choice.precision, "precision_choice": choice.line(), "encoder_once": session.splits}
+            "precision": choice.precision, "precision_choice": choice.line(), "encoder_once": session.splits,
+            "route": route}
     return session, meta
 
 

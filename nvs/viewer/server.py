@@ -2,7 +2,8 @@
 
 GET  /                  the page (static/index.html; static/viewer.js, static/viewer.css under /static)
 GET  /api/info          model, controls (axes and trained ranges) and the gallery (PNG data URLs)
-GET  /api/view?source=<key>&<axis>=<value>...   one view: {rgb, depth (PNG data URLs), depth_range, model_ms, ...}
+GET  /api/view?source=<key>&<axis>=<value>...[&route=1]  one view: {rgb, depth (PNG data URLs),
+                        depth_range, model_ms, route, route_features, ...}; route=1: through the fitted route rule
 POST /api/upload        multipart form field 'image' -> a new source {key, label, image, initial}
 GET  /api/ply?source=<key>&<axis>=<value>...    the view's predicted depth as a coloured point cloud (PLY download)
 GET  /api/video?source=<key>&path=orbit|forward&frames=N&fps=F   {gif, mp4 (data URLs), frames, ms} (nvs/viewer/video.py)
@@ -17,6 +18,7 @@ import base64
 import errno
 import ipaddress
 import logging
+import math
 import socket
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -50,13 +52,16 @@ def source_json(session: ViewSession, source: Source) -> dict:
             "initial": session.controls.initial(source.meta)}
 
 
-def view_json(session: ViewSession, key: str, values: dict[str, float]) -> dict:
+def view_json(session: ViewSession, key: str, values: dict[str, float], route: bool = False) -> dict:
     """Render and encode the PNGs (on the worker thread: both are CPU work)."""
     t0 = time.perf_counter()
-    v = session.view(key, values)
+    v = session.view(key, values, route)
+    features = {k: (f if math.isfinite(f) else None) for k, f in v.route_features.items()} if v.route_features \
+        else None  # JSON has no NaN / inf: a feature not computed for this view is null
     return {"rgb": png_data_url(v.rgb), "depth": png_data_url(v.depth) if v.depth is not None else None,
             "depth_range": v.depth_range, "model_ms": v.model_ms, "model_cpu_ms": v.model_cpu_ms,
-            "encoded": v.encoded, "server_ms": 1000 * (time.perf_counter() - t0)}
+            "encoded": v.encoded, "route": v.route, "route_features": features,
+            "server_ms": 1000 * (time.perf_counter() - t0)}
 
 
 async def _in_worker(request: web.Request, fn, *args):
@@ -100,11 +105,19 @@ def _int_param(query, name: str, default: int, lo: int, hi: int) -> int:
     return value
 
 
+def _route_flag(query) -> bool:
+    value = query.get("route", "0")
+    if value not in ("0", "1"):
+        raise UserError(f"route={value!r}: expected 0 or 1")
+    return value == "1"
+
+
 async def view(request: web.Request) -> web.Response:
     session = request.app[SESSION]
     key = _source_key(request)
     values = _pose_values(session, request.query)
-    return web.json_response(await _in_worker(request, view_json, session, key, values))
+    route = _route_flag(request.query)
+    return web.json_response(await _in_worker(request, view_json, session, key, values, route))
 
 
 def ply_download(session: ViewSession, key: str, values: dict[str, float]) -> tuple[bytes, str]:

@@ -18,6 +18,7 @@ import torch.nn as nn
 
 from nvs.core.errors import UserError
 from nvs.core.protocols import EncodeOnce
+from nvs.core.types import ROUTES
 from nvs.viewer.controls import ObjectControls, SceneControls
 from nvs.viewer.images import decode_upload, depth_to_uint8, to_uint8
 
@@ -44,6 +45,8 @@ class View:
     model_cpu_ms: float  # CPU time of the calling thread for the same work (all of it when torch runs 1 thread)
     encoded: bool  # the encoder ran for this view (a source not seen recently)
     depth_values: np.ndarray | None = None  # (S,S) float32 predicted depth (pose units), for videos and point clouds
+    route: str | None = None  # the route a routed view took (copy, warp, full); None: not routed
+    route_features: dict[str, float] | None = None  # what the rule read (NaN: not computed for this view)
 
 
 class ViewSession:
@@ -56,11 +59,13 @@ class ViewSession:
         gallery: the test-split sources offered on the page.
         autocast: bf16 or None (float32); channels_last: the memory layout (both from nvs.run.precision.choose).
         cache_size: encoded sources (and uploads) kept.
+        router: the network behind a fitted route rule (``nvs.models.route.RoutedNet`` of ``net``): ``view(...,
+            route=True)`` renders through it, reusing the cached encoding; None: no routing offered.
     """
 
     def __init__(self, net: nn.Module, image_size: int, K: torch.Tensor, pivot: torch.Tensor,
                  controls: ObjectControls | SceneControls, gallery: list[Source], autocast: torch.dtype | None,
-                 cache_size: int = 8, channels_last: bool = True):
+                 cache_size: int = 8, channels_last: bool = True, router: EncodeOnce | None = None):
         if not gallery:
             raise UserError("the dataset's test split has no source images for the gallery")
         self.layout = torch.channels_last if channels_last else torch.contiguous_format
@@ -76,6 +81,7 @@ class ViewSession:
         # Capability, not config: a network that can be split is split.
         self.splits = isinstance(net, EncodeOnce)
         self.encoder_runs = 0
+        self.router = router
 
     # -- sources ---------------------------------------------------------------------------------------------------
     def source(self, key: str) -> Source:
@@ -116,18 +122,28 @@ class ViewSession:
             self._encoded.popitem(last=False)
         return encoded, True
 
-    def view(self, key: str, values: dict[str, float]) -> View:
-        """Render source ``key`` at the pose of the control ``values`` (checked against the trained range)."""
+    def view(self, key: str, values: dict[str, float], route: bool = False) -> View:
+        """Render source ``key`` at the pose of the control ``values`` (checked against the trained range); with
+        ``route`` through the router (a copied view has no depth: none was predicted)."""
+        if route and self.router is None:
+            raise UserError("routing is off: start the viewer with route=<a route_rule.json> (nvs.evaluate route=fit)")
         source = self.source(key)
         T = self.controls.pose(values, source.meta)[None]
         t0, cpu0 = time.perf_counter(), time.thread_time()
         with torch.inference_mode(), self._context():
             encoded, fresh = self._encode(source)
             batch = {"K": self.K, "T_tgt_src": T, "pivot": self.pivot}
-            out = self.net.render(encoded, batch) if self.splits else self.net({**batch, "src": encoded})
+            if route:
+                out = self.router.render((self._src(source), encoded), batch)
+            else:
+                out = self.net.render(encoded, batch) if self.splits else self.net({**batch, "src": encoded})
             rgb = to_uint8(out["rgb"][0])
             depth = out.get("depth")
+            if depth is not None and not bool(torch.isfinite(depth[0]).all()):
+                depth = None  # routed to copy: no depth predicted
             grey, span = depth_to_uint8(depth[0]) if depth is not None else (None, None)
             values = depth[0, 0].float().cpu().numpy() if depth is not None else None
+            taken = ROUTES[int(out["route"][0])] if "route" in out else None
+            features = {k: float(v[0]) for k, v in out["route_features"].items()} if "route" in out else None
         return View(rgb, grey, span, 1000 * (time.perf_counter() - t0), 1000 * (time.thread_time() - cpu0), fresh,
-                    values)
+                    values, taken, features)

@@ -98,9 +98,19 @@ function record(ms, view) {
   const sorted = [...state.recent].sort((a, b) => a - b);
   const median = sorted[Math.floor(sorted.length / 2)];
   const encoder = view.encoded ? ", encoder ran: new source" : "";
+  $("route-taken").textContent = view.route ? `this view: ${view.route}${routeFeatures(view.route_features)}` : "";
+  document.body.dataset.route = view.route || "";
   $("stats").textContent = `latency per view: ${ms.toFixed(0)} ms end to end (model ${view.model_ms.toFixed(0)} ms, `
     + `server ${view.server_ms.toFixed(0)} ms${encoder}) · median of the last ${sorted.length}: `
     + `${median.toFixed(0)} ms ≈ ${(1000 / median).toFixed(1)} views/s`;
+}
+
+function routeFeatures(f) {
+  // what the rule read; null: not computed for this view (a copied view runs no network)
+  const parts = [["pose bound", f.pose_px, " px"], ["mean displacement", f.disp_mean_px, " px"],
+    ["disocclusion", f.disocclusion === null ? null : 100 * f.disocclusion, "%"]]
+    .filter(([, v]) => v !== null).map(([name, v, unit]) => `${name} ${v.toFixed(1)}${unit}`);
+  return parts.length ? ` (${parts.join(", ")})` : "";
 }
 
 function requestView() {
@@ -193,6 +203,7 @@ function setUpUpload() {
 function poseParams() {
   const params = new URLSearchParams({ source: state.source.key });
   for (const [name, value] of Object.entries(state.values)) params.set(name, String(value));
+  if ($("route").checked) params.set("route", "1");
   return params;
 }
 
@@ -246,6 +257,10 @@ async function init() {
     $("model").textContent = `model ${info.model} · data ${info.data} · ${info.image_size}² · ${info.precision}`
       + ` · ${split} · ${info.checkpoint}`;
     buildControls(state.axes);
+    if (info.route) {  // the viewer was started with route=<rule file>
+      $("route-box").hidden = false;
+      $("route").addEventListener("change", requestView);
+    }
     for (const source of info.gallery) addToGallery(source);
     setUpDrag();
     setUpUpload();
