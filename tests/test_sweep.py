@@ -236,6 +236,22 @@ def test_paper_numbers_match_the_paper_tables():
     ({"rows": [{"name": "a", "seeds": "two"}]}, "seeds must be"),
     ({"against": ["c"], "rows": [{"name": "a"}, {"name": "c", "reference": "copy_source", "data": "chairs"}]},
      r"s.yaml:\d+: against\[0\]: 'c' is not a trained row of the study; trained rows: a"),
+    # a variant ('stands_for') names another trained row with paper numbers, no variant itself, and has none of its own
+    ({"rows": [{"name": "a", "paper": {"l1": 0.1}}, {"name": "v", "stands_for": "v"}]},
+     r"s.yaml:\d+: rows\[1\].stands_for: row 'v' cannot stand for itself"),
+    ({"rows": [{"name": "a", "paper": {"l1": 0.1}}, {"name": "v", "stands_for": "x"}]},
+     r"s.yaml:\d+: rows\[1\].stands_for: 'x' is not a row of the study"),
+    ({"rows": [{"name": "a", "paper": {"l1": 0.1}}, {"name": "b"}, {"name": "v", "stands_for": "b"}]},
+     r"s.yaml:\d+: rows\[2\].stands_for: 'b' is not a trained row with paper numbers; a variant stands for one "
+     r"of: a$"),
+    ({"rows": [{"name": "a", "paper": {"l1": 0.1}}, {"name": "c", "reference": "copy_source", "data": "chairs",
+                                                     "paper": {"l1": 0.2}}, {"name": "v", "stands_for": "c"}]},
+     r"rows\[2\].stands_for: 'c' is not a trained row with paper numbers"),
+    ({"rows": [{"name": "a", "paper": {"l1": 0.1}}, {"name": "v", "stands_for": "a"}, {"name": "w", "stands_for": "v"}]},
+     r"s.yaml:\d+: rows\[2\].stands_for: 'v' stands for 'a' itself; name that row \(no chains\)"),
+    ({"rows": [{"name": "a", "paper": {"l1": 0.1}}, {"name": "v", "stands_for": "a", "paper": {"l1": 0.2}}]},
+     r"rows\[1\].stands_for: row 'v' has paper numbers of its own"),
+    ({"rows": [{"name": "a", "paper": {"l1": 0.1}}, {"name": "v", "stands_for": ["a"]}]}, r"rows\[1\].stands_for"),
 ])
 def test_malformed_study_is_one_clear_error(tmp_path, bad, message):
     path = tmp_path / "s.yaml"
