@@ -247,7 +247,8 @@ def test_paper_numbers_match_the_paper_tables():
     ({"rows": [{"name": "a", "paper": {"l1": 0.1}}, {"name": "c", "reference": "copy_source", "data": "chairs",
                                                      "paper": {"l1": 0.2}}, {"name": "v", "stands_for": "c"}]},
      r"rows\[2\].stands_for: 'c' is not a trained row with paper numbers"),
-    ({"rows": [{"name": "a", "paper": {"l1": 0.1}}, {"name": "v", "stands_for": "a"}, {"name": "w", "stands_for": "v"}]},
+    ({"rows": [{"name": "a", "paper": {"l1": 0.1}}, {"name": "v", "stands_for": "a"},
+               {"name": "w", "stands_for": "v"}]},
      r"s.yaml:\d+: rows\[2\].stands_for: 'v' stands for 'a' itself; name that row \(no chains\)"),
     ({"rows": [{"name": "a", "paper": {"l1": 0.1}}, {"name": "v", "stands_for": "a", "paper": {"l1": 0.2}}]},
      r"rows\[1\].stands_for: row 'v' has paper numbers of its own"),
@@ -704,6 +705,37 @@ def test_orderings_are_decided_by_a_two_level_bootstrap_over_seeds_and_test_mode
     assert "0 agree, 1 swap, 0 unresolved" in lines[2]
     assert "c / b: swap (1 seed: c, b), Δ +0.05000 [+0.05000, +0.05000]" in lines[3]
     assert sweep.orderings(rows[:1], ["l1"]) == []
+
+
+def test_a_variant_is_decided_in_the_place_of_the_row_it_stands_for_and_never_against_it(tmp_path):
+    n = 30
+    wobble = [0.01 * (k % 5) for k in range(n)]
+    # the paper: c > b > a on L1; v stands for b and is measured better than c, b worse than a
+    c = _ordered_row("c", [_per_image(tmp_path, "c", [0.20 + w for w in wobble])], 0.06)
+    b = _ordered_row("b", [_per_image(tmp_path, "b", [0.40 + w for w in wobble])], 0.08)
+    a = _ordered_row("a", [_per_image(tmp_path, "a", [0.30 + w for w in wobble])], 0.10)
+    v = {**_ordered_row("v", [_per_image(tmp_path, "v", [0.10 + w for w in wobble])], 0.0), "paper": {},
+         "stands_for": "b"}
+    plain = sweep.orderings([c, b, a], ["l1"])
+    lines = sweep.orderings([c, b, a, v], ["l1"])
+    # the paper's rows' lines are the same, the counts only theirs; the variant's pairs follow, marked, in b's place
+    assert lines[0].startswith(plain[0]) and lines[0] != plain[0] and "v for b." in lines[0]
+    assert lines[1:6] == plain[1:-1] and "of 3 pairs 2 agree, 1 swap, 0 unresolved" in lines[2]
+    variant = lines[6:-1]
+    assert [ln.split(":")[0] for ln in variant] == ["  - c / v (for b)", "  - v (for b) / a"]
+    assert variant[0].startswith("  - c / v (for b): swap (1 seed: c, v), Δ +0.10000 [+0.10000, +0.10000]")
+    assert variant[1].startswith("  - v (for b) / a: agree (1 seed: v, a), Δ -0.20000 [")
+    assert "v better on 10/10 models" in variant[1]
+    decided = sweep.decide([c, b, a, v], ["l1"])["l1"]
+    assert [(o.a, o.b, o.a_for, o.b_for) for o in decided if o.stands_for] == [("c", "v", None, "b"),
+                                                                                ("v", "a", "b", None)]
+    assert not any({o.a, o.b} == {"v", "b"} for o in decided)  # never against the row it stands for
+    # a variant without a finished job has no line and changes nothing; nor does one whose row never ran
+    assert sweep.orderings([c, b, a, {**v, "l1": (None, None), "dirs": []}], ["l1"]) == plain
+    unrun_b = {**b, "l1": (None, None), "dirs": []}
+    only_variant = sweep.orderings([c, unrun_b, a, v], ["l1"])
+    assert "paper: c > a; ours: c > a; of 1 pairs 1 agree, 0 swap" in only_variant[2]
+    assert [ln.split(":")[0] for ln in only_variant[4:-1]] == ["  - c / v (for b)", "  - v (for b) / a"]
 
 
 def test_the_bootstrap_averages_seeds_groups_scenes_by_sequence_and_names_missing_results(tmp_path):

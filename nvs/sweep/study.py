@@ -168,8 +168,9 @@ def _check_stands_for(rows: tuple[Row, ...], source: Source) -> None:
             raise UserError(f"{where}: '{target.name}' stands for '{target.stands_for}' itself; name that row "
                             "(no chains)")
         if target.reference is not None or not target.paper:
+            named = [r.name for r in rows if r.reference is None and r.paper]
             raise UserError(f"{where}: '{target.name}' is not a trained row with paper numbers; a variant stands "
-                            f"for one of: {', '.join(r.name for r in rows if r.reference is None and r.paper) or 'none'}")
+                            f"for one of: {', '.join(named) or 'none'}")
         if row.paper:
             raise UserError(f"{where}: row '{row.name}' has paper numbers of its own; a variant is read against "
                             f"those of '{target.name}'")
