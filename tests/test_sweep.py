@@ -477,6 +477,30 @@ def test_pareto_report_from_sweep_csv(fabricated, tmp_path):
     assert "| 0.1100 |" in full and full.count("★") == 4  # lowest L1 at every cost in this fabricated set
 
 
+def test_pareto_lists_a_row_without_paper_numbers_under_its_own_label(tmp_path):
+    """The norms-fixed network (a variant: 'stands_for', no paper numbers) is its own labelled point beside the
+    paper's row, once its jobs exist; before that it is not in the report."""
+    rows = [*STUDY["rows"][:1], {"name": "fixed", "label": "Full, norms fixed", "experiment": "nvs_chairs",
+                                 "overrides": ["fidelity.conv0_norm=none"], "stands_for": "full"}]
+    study = _study(tmp_path, rows=rows)
+    root = tmp_path / "runs" / study.scale
+    results = tmp_path / "results"
+    jobs = sweep.plan(study, root)
+    for j in jobs:
+        if j.row.name == "full":
+            _fake_result(j, root, 0.12)
+    sweep.run([str(study.path), "--collect-only", str(root), "--results", str(results)])
+    assert "norms fixed" not in pareto.run([str(results / "fab.csv"), "--results", str(results)])[0].read_text()
+    for j in jobs:
+        if j.row.name == "fixed":
+            _fake_result(j, root, 0.08)
+    sweep.run([str(study.path), "--collect-only", str(root), "--results", str(results)])
+    text = pareto.run([str(results / "fab.csv"), "--results", str(results)])[0].read_text()
+    table = [ln for ln in text.splitlines() if ln.startswith("| ") and "---" not in ln][1:]
+    assert [ln.split(" | ")[0] for ln in table] == ["| Full, norms fixed", "| Full model"]  # by L1
+    assert table[0].startswith("| Full, norms fixed | fab | 2 | 0.0800 |")
+
+
 def test_pareto_never_puts_two_scales_on_one_front(fabricated, tmp_path):
     study, root = fabricated
     results = tmp_path / "results"
