@@ -3,6 +3,7 @@ results/README.md that rest on the committed jobs' per-image files rather than o
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -11,27 +12,38 @@ import pytest
 from nvs import sweep
 from nvs.core.errors import UserError
 from nvs.sweep.bootstrap import pair_up, read_seeds
-from nvs.sweep.paper_tally import summary, tally
-from tests.test_sweep import _ordered_row, _per_image
+from nvs.sweep.paper_tally import CODE, networks_summary, summary, tally
+from tests.test_sweep import _fake_result, _ordered_row, _per_image
 
 REPO = Path(__file__).resolve().parents[1]
 JOBS = REPO / "results" / "jobs" / "64px_10000steps"
 N = 30  # 10 test models x 3 pairs
 
 
-def _table(results: Path, study: str, measured: dict[str, list[Path]], paper: dict[str, float]) -> None:
-    """results/<study>.md (its ordering lines, by the tables' own writer) and .csv (paper numbers, finished seeds);
-    a row of ``paper`` missing from ``measured`` has no finished job."""
-    rows = [_ordered_row(name, dirs, paper[name]) for name, dirs in measured.items()]
+def _table(results: Path, study: str, measured: dict[str, list[Path]], paper: dict[str, float],
+           variants: dict[str, str] | None = None) -> None:
+    """results/<study>.md (its ordering lines, by the tables' own writer) and .csv (paper numbers, finished seeds),
+    and sweeps/<study>.yaml beside results/ (its rows; ``variants``: {variant row: the row it stands for}); a row of
+    ``paper`` or ``variants`` missing from ``measured`` has no finished job."""
+    variants = variants or {}
+    rows = [_ordered_row(name, dirs, paper[name]) if name in paper else
+            {**_ordered_row(name, dirs, 0.0), "paper": {}, "stands_for": variants[name]}
+            for name, dirs in measured.items()]
     (results / f"{study}.md").write_text("## chairs\n\n" + "\n".join(sweep.orderings(rows, ["l1"])) + "\n")
     lines = ["study,row,data,seed,status,l1,paper_l1"]
-    for name, p in paper.items():
+    for name in [*paper, *variants]:
+        p = paper.get(name, "")
         if name in measured:
             mean = next(r["l1"][0] for r in rows if r["row"] == name)
             lines.append(f"{study},{name},chairs,0,done,{mean},{p}")
         else:
             lines.append(f"{study},{name},chairs,0,missing,,{p}")
     (results / f"{study}.csv").write_text("\n".join(lines) + "\n")
+    sweeps = results.parent / "sweeps"
+    sweeps.mkdir(exist_ok=True)
+    spec = [{"name": n, "paper": {"l1": p}} for n, p in paper.items()]
+    spec += [{"name": v, "stands_for": x} for v, x in variants.items()]
+    (sweeps / f"{study}.yaml").write_text(json.dumps({"size": 64, "steps": 2, "rows": spec}))
 
 
 @pytest.fixture()
@@ -71,6 +83,57 @@ def test_each_ordering_with_a_paper_gap_of_10_percent_is_counted_once(rows, tmp_
                                 "1 with a row at one seed), 4 not run")
 
 
+CODE_LINE = ("9 orderings with a paper gap ≥ 10%: 2 reproduced (0 short of the paper's margin, 2 with a row at one "
+             "seed), 2 swapped, 1 unresolved (1 short of the paper's margin, 1 with a row at one seed), 4 not run")
+
+
+def test_a_variant_counts_once_where_it_reproduces_what_the_code_swaps(rows, tmp_path):
+    results = tmp_path / "results"
+    results.mkdir()
+    wobble = [0.01 * (k % 5) for k in range(N)]
+    # v stands for s (paper 2nd, measured worst): v measured 0.27, between a (0.22) and b (0.32); c is 0.22 +- 0.05
+    v = [_per_image(tmp_path, "v", [0.25 + w for w in wobble])]
+    _table(results, "one", rows | {"v": v}, PAPER, {"v": "s"})
+    entries = tally(results, {"one": ("l1",)})
+    assert summary(entries) == CODE_LINE  # the code's network's line is today's
+    code = {(e.a, e.b): e.verdict for e in entries if e.network == CODE}
+    variant = {(e.a, e.b): e for e in entries if e.network != CODE}
+    assert code[("s", "b")] == "swap" and len(code) == 9
+    # by hand: each ordering of s with a gap >= 10% (a / s 14%, s / b 12.5%, s / c 18%, s / d 30%), v in s's place
+    assert {k: e.verdict for k, e in variant.items()} == {("a", "s"): "agree", ("s", "b"): "agree",
+                                                         ("s", "c"): "swap", ("s", "d"): "not run"}
+    assert {(e.network, e.stands_for) for e in variant.values()} == {("v", "s")}
+    assert variant[("s", "b")].lo == pytest.approx(-0.05) and variant[("s", "b")].b_mean == pytest.approx(0.32)
+    assert variant[("a", "s")].b_mean == pytest.approx(0.27)  # v is in the place of the worse row here
+    assert networks_summary(entries) == (
+        "reproduced by at least one of the two networks: 3 of 9 orderings with a paper gap ≥ 10% (1 by the variant "
+        "alone); the variant (v for s) on its 4 orderings: 2 reproduced (0 short of the paper's margin, 2 with a row "
+        "at one seed), 1 swapped, 0 unresolved (0 short of the paper's margin, 0 with a row at one seed), 1 not run")
+
+
+def test_a_variant_without_a_finished_job_is_not_run_and_a_missing_line_is_an_error(rows, tmp_path):
+    results = tmp_path / "results"
+    results.mkdir()
+    _table(results, "one", rows, PAPER, {"v": "s"})
+    entries = tally(results, {"one": ("l1",)})
+    assert summary(entries) == CODE_LINE
+    assert sorted((e.a, e.b, e.verdict) for e in entries if e.network == "v") == [
+        ("a", "s", "not run"), ("s", "b", "not run"), ("s", "c", "not run"), ("s", "d", "not run")]
+    assert networks_summary(entries).startswith("reproduced by at least one of the two networks: 2 of 9 orderings "
+                                                "with a paper gap ≥ 10% (0 by the variant alone); the variant (v for s) "
+                                                "on its 4 orderings: 0 reproduced")
+    # the variant finished but its table has no line for it (written before it ran): rebuild
+    v = [_per_image(tmp_path, "v", [0.25 + 0.01 * (k % 5) for k in range(N)])]
+    md = (results / "one.md").read_text()
+    _table(results, "one", rows | {"v": v}, PAPER, {"v": "s"})
+    (results / "one.md").write_text(md)
+    with pytest.raises(UserError, match=r"one\.md: no ordering line for a / v \(for s\) on l1 \(chairs\)"):
+        tally(results, {"one": ("l1",)})
+    (results.parent / "sweeps" / "one.yaml").unlink()
+    with pytest.raises(UserError, match=r"one\.yaml: no such study file"):
+        tally(results, {"one": ("l1",)})
+
+
 def test_a_pair_decided_two_ways_or_a_missing_table_is_one_clear_error(rows, tmp_path):
     results = tmp_path / "results"
     results.mkdir()
@@ -83,6 +146,35 @@ def test_a_pair_decided_two_ways_or_a_missing_table_is_one_clear_error(rows, tmp
     (results / "one.md").write_text("## chairs\n")  # older than its CSV: both rows finished, no line
     with pytest.raises(UserError, match=r"one\.md: no ordering line for a / b"):
         tally(results, {"one": ("l1",)})
+
+
+def test_the_table_writer_marks_the_variant_and_the_tally_reads_it_back(tmp_path):
+    """End to end: a study with a variant, its tables by --collect-only, the tally from the written files."""
+    rows = [{"name": "full", "label": "Full", "experiment": "nvs_chairs", "paper": {"l1": 0.05}},
+            {"name": "chen", "label": "Chen", "experiment": "chen_chairs", "paper": {"l1": 0.07}},
+            {"name": "fixed", "label": "Full, norms fixed", "experiment": "nvs_chairs", "stands_for": "full",
+             "overrides": ["fidelity.conv0_norm=none", "fidelity.decoder_norm=batch"]}]
+    (tmp_path / "sweeps").mkdir()
+    path = tmp_path / "sweeps" / "fab.yaml"
+    path.write_text(json.dumps({"name": "fab", "seeds": [0, 1], "size": 64, "steps": 10, "group_by": "data",
+                                "rows": rows}))
+    study = sweep.load_study(path)
+    root = tmp_path / "runs" / study.scale
+    base = {"full": 0.16, "chen": 0.14, "fixed": 0.10}  # the code's full model swaps with Chen, the variant agrees
+    for j in sweep.plan(study, root):
+        _fake_result(j, root, base[j.row.name])
+        values = [base[j.row.name] + 0.01 * j.seed + 0.01 * (k % 4) for k in range(24)]
+        (j.dir / "test_per_image.csv").write_text(_per_image(tmp_path, f"{j.row.name}{j.seed}", values)
+                                                  .joinpath("test_per_image.csv").read_text())
+    results = tmp_path / "results"
+    assert sweep.run([str(path), "--collect-only", str(root), "--results", str(results)]) == 0
+    md = (results / "fab.md").read_text()
+    assert "\n  - full / chen: swap, Δ +0.02000 [" in md and "\n  - fixed (for full) / chen: agree, Δ -0.04000 [" in md
+    assert "of 1 pairs 0 agree, 1 swap, 0 unresolved" in md and "fixed for full." in md
+    assert "fixed (for full) / full" not in md and "full / fixed" not in md
+    entries = tally(results, {"fab": ("l1",)})
+    assert [(e.network, e.verdict) for e in entries] == [(CODE, "swap"), ("fixed", "agree")]
+    assert networks_summary(entries).startswith("reproduced by at least one of the two networks: 1 of 1 orderings")
 
 
 def test_the_readme_states_the_count_of_the_committed_tables():

@@ -266,6 +266,23 @@ def test_paper_numbers_match_the_paper_tables():
     ({"rows": [{"name": "a", "seeds": "two"}]}, "seeds must be"),
     ({"against": ["c"], "rows": [{"name": "a"}, {"name": "c", "reference": "copy_source", "data": "chairs"}]},
      r"s.yaml:\d+: against\[0\]: 'c' is not a trained row of the study; trained rows: a"),
+    # a variant ('stands_for') names another trained row with paper numbers, no variant itself, and has none of its own
+    ({"rows": [{"name": "a", "paper": {"l1": 0.1}}, {"name": "v", "stands_for": "v"}]},
+     r"s.yaml:\d+: rows\[1\].stands_for: row 'v' cannot stand for itself"),
+    ({"rows": [{"name": "a", "paper": {"l1": 0.1}}, {"name": "v", "stands_for": "x"}]},
+     r"s.yaml:\d+: rows\[1\].stands_for: 'x' is not a row of the study"),
+    ({"rows": [{"name": "a", "paper": {"l1": 0.1}}, {"name": "b"}, {"name": "v", "stands_for": "b"}]},
+     r"s.yaml:\d+: rows\[2\].stands_for: 'b' is not a trained row with paper numbers; a variant stands for one "
+     r"of: a$"),
+    ({"rows": [{"name": "a", "paper": {"l1": 0.1}}, {"name": "c", "reference": "copy_source", "data": "chairs",
+                                                     "paper": {"l1": 0.2}}, {"name": "v", "stands_for": "c"}]},
+     r"rows\[2\].stands_for: 'c' is not a trained row with paper numbers"),
+    ({"rows": [{"name": "a", "paper": {"l1": 0.1}}, {"name": "v", "stands_for": "a"},
+               {"name": "w", "stands_for": "v"}]},
+     r"s.yaml:\d+: rows\[2\].stands_for: 'v' stands for 'a' itself; name that row \(no chains\)"),
+    ({"rows": [{"name": "a", "paper": {"l1": 0.1}}, {"name": "v", "stands_for": "a", "paper": {"l1": 0.2}}]},
+     r"rows\[1\].stands_for: row 'v' has paper numbers of its own"),
+    ({"rows": [{"name": "a", "paper": {"l1": 0.1}}, {"name": "v", "stands_for": ["a"]}]}, r"rows\[1\].stands_for"),
 ])
 def test_malformed_study_is_one_clear_error(tmp_path, bad, message):
     path = tmp_path / "s.yaml"
@@ -488,6 +505,30 @@ def test_pareto_report_from_sweep_csv(fabricated, tmp_path):
     assert "## chairs" in text and "copy" not in text.split("## chairs")[1]  # reference rows are not methods
     full = next(ln for ln in text.splitlines() if ln.startswith("| Full model"))
     assert "| 0.1100 |" in full and full.count("★") == 4  # lowest L1 at every cost in this fabricated set
+
+
+def test_pareto_lists_a_row_without_paper_numbers_under_its_own_label(tmp_path):
+    """The norms-fixed network (a variant: 'stands_for', no paper numbers) is its own labelled point beside the
+    paper's row, once its jobs exist; before that it is not in the report."""
+    rows = [*STUDY["rows"][:1], {"name": "fixed", "label": "Full, norms fixed", "experiment": "nvs_chairs",
+                                 "overrides": ["fidelity.conv0_norm=none"], "stands_for": "full"}]
+    study = _study(tmp_path, rows=rows)
+    root = tmp_path / "runs" / study.scale
+    results = tmp_path / "results"
+    jobs = sweep.plan(study, root)
+    for j in jobs:
+        if j.row.name == "full":
+            _fake_result(j, root, 0.12)
+    sweep.run([str(study.path), "--collect-only", str(root), "--results", str(results)])
+    assert "norms fixed" not in pareto.run([str(results / "fab.csv"), "--results", str(results)])[0].read_text()
+    for j in jobs:
+        if j.row.name == "fixed":
+            _fake_result(j, root, 0.08)
+    sweep.run([str(study.path), "--collect-only", str(root), "--results", str(results)])
+    text = pareto.run([str(results / "fab.csv"), "--results", str(results)])[0].read_text()
+    table = [ln for ln in text.splitlines() if ln.startswith("| ") and "---" not in ln][1:]
+    assert [ln.split(" | ")[0] for ln in table] == ["| Full, norms fixed", "| Full model"]  # by L1
+    assert table[0].startswith("| Full, norms fixed | fab | 2 | 0.0800 |")
 
 
 def test_pareto_never_puts_two_scales_on_one_front(fabricated, tmp_path):
@@ -718,6 +759,37 @@ def test_orderings_are_decided_by_a_two_level_bootstrap_over_seeds_and_test_mode
     assert "0 agree, 1 swap, 0 unresolved" in lines[2]
     assert "c / b: swap (1 seed: c, b), Δ +0.05000 [+0.05000, +0.05000]" in lines[3]
     assert sweep.orderings(rows[:1], ["l1"]) == []
+
+
+def test_a_variant_is_decided_in_the_place_of_the_row_it_stands_for_and_never_against_it(tmp_path):
+    n = 30
+    wobble = [0.01 * (k % 5) for k in range(n)]
+    # the paper: c > b > a on L1; v stands for b and is measured better than c, b worse than a
+    c = _ordered_row("c", [_per_image(tmp_path, "c", [0.20 + w for w in wobble])], 0.06)
+    b = _ordered_row("b", [_per_image(tmp_path, "b", [0.40 + w for w in wobble])], 0.08)
+    a = _ordered_row("a", [_per_image(tmp_path, "a", [0.30 + w for w in wobble])], 0.10)
+    v = {**_ordered_row("v", [_per_image(tmp_path, "v", [0.10 + w for w in wobble])], 0.0), "paper": {},
+         "stands_for": "b"}
+    plain = sweep.orderings([c, b, a], ["l1"])
+    lines = sweep.orderings([c, b, a, v], ["l1"])
+    # the paper's rows' lines are the same, the counts only theirs; the variant's pairs follow, marked, in b's place
+    assert lines[0].startswith(plain[0]) and lines[0] != plain[0] and "v for b." in lines[0]
+    assert lines[1:6] == plain[1:-1] and "of 3 pairs 2 agree, 1 swap, 0 unresolved" in lines[2]
+    variant = lines[6:-1]
+    assert [ln.split(":")[0] for ln in variant] == ["  - c / v (for b)", "  - v (for b) / a"]
+    assert variant[0].startswith("  - c / v (for b): swap (1 seed: c, v), Δ +0.10000 [+0.10000, +0.10000]")
+    assert variant[1].startswith("  - v (for b) / a: agree (1 seed: v, a), Δ -0.20000 [")
+    assert "v better on 10/10 models" in variant[1]
+    decided = sweep.decide([c, b, a, v], ["l1"])["l1"]
+    assert [(o.a, o.b, o.a_for, o.b_for) for o in decided if o.stands_for] == [("c", "v", None, "b"),
+                                                                                ("v", "a", "b", None)]
+    assert not any({o.a, o.b} == {"v", "b"} for o in decided)  # never against the row it stands for
+    # a variant without a finished job has no line and changes nothing; nor does one whose row never ran
+    assert sweep.orderings([c, b, a, {**v, "l1": (None, None), "dirs": []}], ["l1"]) == plain
+    unrun_b = {**b, "l1": (None, None), "dirs": []}
+    only_variant = sweep.orderings([c, unrun_b, a, v], ["l1"])
+    assert "paper: c > a; ours: c > a; of 1 pairs 1 agree, 0 swap" in only_variant[2]
+    assert [ln.split(":")[0] for ln in only_variant[4:-1]] == ["  - c / v (for b)", "  - v (for b) / a"]
 
 
 def test_the_bootstrap_averages_seeds_groups_scenes_by_sequence_and_names_missing_results(tmp_path):

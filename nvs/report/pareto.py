@@ -1,7 +1,9 @@
 """Run time against error from the sweep results: the rows, their Pareto front per dataset and scale, the report.
 
-Reference rows (no training) are left out; a job shared by several studies counts once. Rows trained at different
-scales (image size, steps) are never compared: each scale of a dataset is its own series and front.
+Every finished trained row is a point under its label, with or without paper numbers (a variant such as the
+norms-fixed network stands beside the paper's full model); reference rows (no training) are left out; a job shared by
+several studies counts once (the label of the first CSV that holds it). Rows trained at different scales (image
+size, steps) are never compared: each scale of a dataset is its own series and front.
 (``python -m nvs.pareto`` writes ``results/pareto.md`` and ``.png`` from these.)
 """
 

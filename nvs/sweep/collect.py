@@ -125,7 +125,8 @@ def summarize(study: Study, records: list[dict]) -> list[dict]:
         s = {"row": row.name, "label": row.label, "kind": row.kind, "reference": row.reference,
              "n_done": len(done), "n_jobs": len(recs),
              "data": next((r["data"] for r in recs if r["data"]), row.data), "paper": row.paper,
-             "oracle": row.oracle, "notes": _notes(recs), "dirs": [r["dir"] for r in done if r.get("dir")]}
+             "oracle": row.oracle, "stands_for": row.stands_for, "notes": _notes(recs),
+             "dirs": [r["dir"] for r in done if r.get("dir")]}
         for k in (*METRICS, "params", "train_wall_s", *COSTS, *SKIP_FRACTIONS):
             s[k] = mean_std([_num(r[k]) for r in done])
         out.append(s)

@@ -6,12 +6,19 @@ the ordering lines of the table's Markdown (``paper_order``): agree, swap or unr
 no finished job is "not run". Each pair run also says whether its interval lies short of the paper's margin: the
 paper's relative gap applied to our value of the worse row (``Entry.short_of_paper``), one criterion for all pairs.
 The paper's numbers and the finished seeds come from the table's CSV.
+
+Each ordering is measured with the code's network (the paper's rows, ``CODE``) and, where the study file gives a
+variant of one of its two rows (``stands_for:``, the norms-fixed network for the full model), with that variant in
+the row's place too: an ``Entry`` of the same pair whose ``network`` is the variant, read from the variant's
+ordering line (``v (for x) / b``); "not run" while the variant or the other row has no finished job. ``summary``
+counts the code's network; ``networks_summary`` the orderings reproduced by at least one of the two.
 """
 
 from __future__ import annotations
 
 import collections
 import csv
+import dataclasses
 import itertools
 import math
 import re
@@ -20,6 +27,7 @@ from pathlib import Path
 
 from nvs.core.errors import UserError
 from nvs.core.metric_spec import SPECS
+from nvs.sweep.study import load_study
 
 # Tables 1-4 and the metrics of their orderings counted: L1 (Tables 1-3) and the depth errors (Table 4)
 TABLES: dict[str, tuple[str, ...]] = {
@@ -30,10 +38,12 @@ TABLES: dict[str, tuple[str, ...]] = {
 }
 MIN_GAP = 0.10
 NOT_RUN = "not run"
+CODE = "code"  # the network of the paper's rows (the authors' code's); a variant's entries name the variant row
 
 _LABEL = {s.label: k for k, s in SPECS.items()}
 _NUM = r"([+-]?\d+\.\d+)"
-_PAIR = re.compile(rf"^  - (\S+) / (\S+): (agree|swap|unresolved)(?: \(1 seed: ([^)]*)\))?, "
+_FOR = r"(?: \(for (\S+)\))?"   # a variant in the place of the paper's row (``paper_order.Ordering.pair``)
+_PAIR = re.compile(rf"^  - (\S+){_FOR} / (\S+){_FOR}: (agree|swap|unresolved)(?: \(1 seed: ([^)]*)\))?, "
                    rf"(?:Δ {_NUM} \[{_NUM}, {_NUM}\])?")
 _METRIC = re.compile(r"^- \*\*(.+?)\*\* \(best first\) paper:")
 
@@ -53,6 +63,8 @@ class Entry:
     hi: float | None = None
     b_mean: float | None = None      # our mean of row B over its finished seeds
     one_seed: tuple[str, ...] = ()   # the rows the table compared at one seed (no seed spread in the interval)
+    network: str = CODE              # measured with the paper's rows, or with this variant row in a's or b's place
+    stands_for: str | None = None    # the variant's place: a or b (None for the code's network)
 
     @property
     def short_of_paper(self) -> bool | None:
@@ -76,12 +88,12 @@ def _read_csv(path: Path) -> dict[tuple[str, str], list[dict]]:
 Line = tuple[str, float | None, float | None, tuple[str, ...]]
 
 
-def read_orderings(path: Path) -> dict[tuple[str, str, str, str], Line]:
-    """{(data, metric, A, B): (verdict, lo, hi, rows at one seed)} of a table's ordering lines
-    (``paper_order.ordering_lines``)."""
+def read_orderings(path: Path) -> dict[tuple[str, str, str, str, str], Line]:
+    """{(data, metric, A, B, network): (verdict, lo, hi, rows at one seed)} of a table's ordering lines
+    (``paper_order.ordering_lines``); A and B are the paper's rows, network ``CODE`` or the variant in one's place."""
     if not path.is_file():
         raise UserError(f"{path}: no such table (`python -m nvs.sweep sweeps/<study>.yaml --collect-only`)")
-    out: dict[tuple[str, str, str, str], Line] = {}
+    out: dict[tuple[str, str, str, str, str], Line] = {}
     data = metric = None
     for line in path.read_text().splitlines():
         if line.startswith("## "):
@@ -92,9 +104,11 @@ def read_orderings(path: Path) -> dict[tuple[str, str, str, str], Line]:
             if line.strip():
                 metric = None   # a pair line belongs to the metric line right above its block
         elif metric is not None and (m := _PAIR.match(line)):
-            lo, hi = (float(m.group(i)) if m.group(i) else None for i in (6, 7))
-            single = tuple(x.strip() for x in m.group(4).split(",")) if m.group(4) else ()
-            out[(data, metric, m.group(1), m.group(2))] = (m.group(3), lo, hi, single)
+            a, a_for, b, b_for, verdict = m.group(1, 2, 3, 4, 5)
+            lo, hi = (float(m.group(i)) if m.group(i) else None for i in (8, 9))
+            single = tuple(x.strip() for x in m.group(6).split(",")) if m.group(6) else ()
+            network = a if a_for else b if b_for else CODE
+            out[(data, metric, a_for or a, b_for or b, network)] = (verdict, lo, hi, single)
     return out
 
 
@@ -103,12 +117,26 @@ def _mean(records: list[dict], metric: str) -> float | None:
     return sum(values) / len(values) if values else None
 
 
-def tally(results: Path, tables: dict[str, tuple[str, ...]] = TABLES, min_gap: float = MIN_GAP) -> list[Entry]:
-    """Every ordering of the paper with a gap ≥ ``min_gap`` in ``tables`` (study -> metrics), once each."""
-    seen: dict[tuple[str, str, str, str], Entry] = {}
+def _variants(path: Path) -> dict[str, list[str]]:
+    """{paper's row: [its variants]} of a study file (``stands_for:``)."""
+    out: dict[str, list[str]] = {}
+    for row in load_study(path).rows:
+        if row.stands_for is not None:
+            out.setdefault(row.stands_for, []).append(row.name)
+    return out
+
+
+def tally(results: Path, tables: dict[str, tuple[str, ...]] = TABLES, min_gap: float = MIN_GAP,
+          sweeps: Path | None = None) -> list[Entry]:
+    """Every ordering of the paper with a gap ≥ ``min_gap`` in ``tables`` (study -> metrics), once each: the code's
+    network's entries, then the variants' (the study files in ``sweeps``, default ``results/../sweeps``, name them)."""
+    sweeps = results.parent / "sweeps" if sweeps is None else sweeps
+    seen: dict[tuple[str, str, str, str, str], Entry] = {}
     for study, metrics in tables.items():
+        md = results / f"{study}.md"
         rows = _read_csv(results / f"{study}.csv")
-        lines = read_orderings(results / f"{study}.md")
+        lines = read_orderings(md)
+        variants = _variants(sweeps / f"{study}.yaml")
         for metric, data in itertools.product(metrics, sorted({d for d, _ in rows})):
             col = f"paper_{metric}"
             ranked = [(name, float(recs[0][col]), recs) for (d, name), recs in rows.items()
@@ -118,27 +146,43 @@ def tally(results: Path, tables: dict[str, tuple[str, ...]] = TABLES, min_gap: f
                 gap = abs(pa - pb) / abs(pb) if pb else math.inf
                 if pa == pb or gap < min_gap:
                     continue
-                key = (data, metric, a, b)
-                means = _mean(ra, metric), _mean(rb, metric)
-                if None in means:
-                    entry = Entry(study, data, metric, a, b, gap, NOT_RUN)
-                elif key in lines:
-                    verdict, lo, hi, single = lines[key]
-                    entry = Entry(study, data, metric, a, b, gap, verdict, lo, hi, means[1], single)
-                else:
-                    raise UserError(f"{results / f'{study}.md'}: no ordering line for {a} / {b} on {metric} ({data}), "
-                                    f"though both rows finished: rebuild it with --collect-only")
-                old = seen.get(key)
-                if old is not None and old.verdict != entry.verdict:
-                    raise UserError(f"{results / f'{study}.md'}: {a} / {b} on {metric} ({data}) is {entry.verdict} "
-                                    f"here but {old.verdict} in {old.study}.md")
-                seen.setdefault(key, entry)
-    return list(seen.values())
+                measured = [(CODE, None, ra, rb)]
+                measured += [(v, a, rows.get((data, v), []), rb) for v in variants.get(a, ())]
+                measured += [(v, b, ra, rows.get((data, v), [])) for v in variants.get(b, ())]
+                for network, x, rec_a, rec_b in measured:
+                    entry = _entry(md, Entry(study, data, metric, a, b, gap, NOT_RUN, network=network, stands_for=x),
+                                   _mean(rec_a, metric), _mean(rec_b, metric), lines)
+                    key = (data, metric, a, b, network)
+                    old = seen.get(key)
+                    if old is not None and old.verdict != entry.verdict:
+                        raise UserError(f"{md}: {_pair(entry)} on {metric} ({data}) is {entry.verdict} here but "
+                                        f"{old.verdict} in {old.study}.md")
+                    seen.setdefault(key, entry)
+    entries = list(seen.values())
+    return [e for e in entries if e.network == CODE] + [e for e in entries if e.network != CODE]
 
 
-def summary(entries: list[Entry], min_gap: float = MIN_GAP) -> str:
-    """One line: how many orderings are reproduced, swapped, unresolved and not run; of the reproduced and the
-    unresolved, how many have an interval short of the paper's margin, and how many rest on a row at one seed."""
+def _pair(e: Entry) -> str:
+    """'a / b', or with the variant in its row's place 'v (for a) / b' (as the table writes it)."""
+    return " / ".join(f"{e.network} (for {x})" if x == e.stands_for else x for x in (e.a, e.b))
+
+
+def _entry(md: Path, entry: Entry, mean_a: float | None, mean_b: float | None,
+           lines: dict[tuple[str, str, str, str, str], Line]) -> Entry:
+    """``entry`` (not run) with the verdict of its table line once both rows it compares have finished jobs."""
+    if mean_a is None or mean_b is None:
+        return entry
+    line = lines.get((entry.data, entry.metric, entry.a, entry.b, entry.network))
+    if line is None:
+        raise UserError(f"{md}: no ordering line for {_pair(entry)} on {entry.metric} ({entry.data}), though both "
+                        f"rows finished: rebuild it with --collect-only")
+    verdict, lo, hi, single = line
+    return dataclasses.replace(entry, verdict=verdict, lo=lo, hi=hi, b_mean=mean_b, one_seed=single)
+
+
+def _counts(entries: list[Entry]) -> str:
+    """'2 reproduced (0 short of the paper's margin, 2 with a row at one seed), 2 swapped, 1 unresolved (...), 4 not
+    run'."""
     n = collections.Counter(e.verdict for e in entries)
 
     def of(verdict: str) -> str:
@@ -148,5 +192,26 @@ def summary(entries: list[Entry], min_gap: float = MIN_GAP) -> str:
         name = "reproduced" if verdict == "agree" else verdict
         return f"{len(group)} {name} ({short} short of the paper's margin, {single} with a row at one seed)"
 
-    return (f"{len(entries)} orderings with a paper gap ≥ {100 * min_gap:g}%: {of('agree')}, {n['swap']} swapped, "
-            f"{of('unresolved')}, {n[NOT_RUN]} not run")
+    return f"{of('agree')}, {n['swap']} swapped, {of('unresolved')}, {n[NOT_RUN]} not run"
+
+
+def summary(entries: list[Entry], min_gap: float = MIN_GAP) -> str:
+    """One line for the code's network: how many orderings are reproduced, swapped, unresolved and not run; of the
+    reproduced and the unresolved, how many have an interval short of the paper's margin, and how many rest on a row
+    at one seed."""
+    code = [e for e in entries if e.network == CODE]
+    return f"{len(code)} orderings with a paper gap ≥ {100 * min_gap:g}%: {_counts(code)}"
+
+
+def networks_summary(entries: list[Entry], min_gap: float = MIN_GAP) -> str:
+    """One line: how many of the orderings the code's network or a variant in its row's place reproduces, and the
+    variants' own counts over the orderings they take part in."""
+    code = [e for e in entries if e.network == CODE]
+    variant = [e for e in entries if e.network != CODE]
+    agree = {(e.data, e.metric, e.a, e.b) for e in entries if e.verdict == "agree"}
+    alone = agree - {(e.data, e.metric, e.a, e.b) for e in code if e.verdict == "agree"}
+    names = sorted({(e.network, e.stands_for) for e in variant})
+    which = ", ".join(f"{v} for {x}" for v, x in names) or "none"
+    return (f"reproduced by at least one of the two networks: {len(agree)} of {len(code)} orderings with a paper gap "
+            f"≥ {100 * min_gap:g}% ({len(alone)} by the variant alone); the variant ({which}) on its {len(variant)} "
+            f"orderings: {_counts(variant)}")

@@ -44,7 +44,7 @@ def per_model_png(title: str, decided: dict[str, list[Ordering]]) -> bytes | Non
             x, y, err = np.array(pts).T
             ax.errorbar(x, y, xerr=err, fmt="o", ms=3.5, lw=0.8, color=colour[g])
         ax.axvline(0, color="grey", lw=0.8, ls="--")
-        ax.set_yticks(range(len(pairs)), [f"{o.a} / {o.b}: {o.verdict}{o.note}" for o in pairs], fontsize=7)
+        ax.set_yticks(range(len(pairs)), [f"{o.pair}: {o.verdict}{o.note}" for o in pairs], fontsize=7)
         ax.invert_yaxis()
         ax.set_xlabel(f"{SPECS[m].label}: per-group Δ toward A (> 0: A better); black: Δ over all pairs", fontsize=8)
         ax.tick_params(axis="x", labelsize=7)

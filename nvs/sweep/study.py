@@ -47,6 +47,10 @@ class Row:
     # fewer seeds than the table's (Table 3's rows whose paper gap is small). --seeds on the command line replaces
     # both. Not for reference rows (one evaluation stands for every seed).
     seeds: int | tuple[int, ...] | None = None
+    # A variant of another trained row of the study, with no paper numbers of its own (the norms-fixed network for
+    # the paper's full model): its orderings against the paper are also decided with this row in that row's place
+    # (nvs.sweep.paper_order), never against that row itself.
+    stands_for: str | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "label", self.label or self.name)
@@ -147,6 +151,31 @@ def _check_row(row: Row, where: str) -> None:
             raise UserError(f"{where}: seeds must be distinct, non-negative and at least one, got {own}")
 
 
+def _check_stands_for(rows: tuple[Row, ...], source: Source) -> None:
+    """A variant ('stands_for:') names another trained row with paper numbers, which is no variant itself, and has no
+    paper numbers of its own (one row's numbers, one place in the paper's orderings)."""
+    by_name = {row.name: row for row in rows}
+    for i, row in enumerate(rows):
+        if row.stands_for is None:
+            continue
+        where = source.where(("rows", i, "stands_for"))
+        target = by_name.get(row.stands_for)
+        if row.stands_for == row.name:
+            raise UserError(f"{where}: row '{row.name}' cannot stand for itself")
+        if target is None:
+            raise UserError(f"{where}: '{row.stands_for}' is not a row of the study")
+        if target.stands_for is not None:
+            raise UserError(f"{where}: '{target.name}' stands for '{target.stands_for}' itself; name that row "
+                            "(no chains)")
+        if target.reference is not None or not target.paper:
+            named = [r.name for r in rows if r.reference is None and r.paper]
+            raise UserError(f"{where}: '{target.name}' is not a trained row with paper numbers; a variant stands "
+                            f"for one of: {', '.join(named) or 'none'}")
+        if row.paper:
+            raise UserError(f"{where}: row '{row.name}' has paper numbers of its own; a variant is read against "
+                            f"those of '{target.name}'")
+
+
 def seed_list(seeds: int | tuple[int, ...]) -> list[int]:
     """A study's or row's 'seeds:' value as a list: an int N means 0..N-1."""
     return list(range(seeds)) if isinstance(seeds, int) else [int(s) for s in seeds]
@@ -191,6 +220,7 @@ def load_study(path: str | Path, seeds: list[int] | None = None, size: int | Non
     if not spec.rows:
         raise UserError(f"{source.where(('rows',))}: 'rows' is empty")
     trained = [row.name for row in spec.rows if row.reference is None]
+    _check_stands_for(spec.rows, source)
     for i, base in enumerate(spec.against):
         if base not in trained:
             raise UserError(f"{source.where(('against', i))}: '{base}' is not a trained row of the study; "
