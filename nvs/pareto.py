@@ -2,7 +2,8 @@
 
 Writes ``results/pareto.md`` and ``results/pareto.png``: L1 and SSIM (paper) of every trained row against its train
 wall time and against its evaluation forward time per image, one colour per dataset, the Pareto front of each dataset
-marked. Reference rows (no training) are left out; a job shared by several studies counts once. Rows trained at
+marked, and under each dataset's table the pick: the cheapest row at evaluation whose L1 is within 1% of the best,
+decided by the interval of its L1 against the best (``nvs.sweep.pick``). Reference rows (no training) are left out; a job shared by several studies counts once. Rows trained at
 different scales (image size, steps) are never compared: each scale of a dataset is its own series and front.
 By default the paper's studies (ablation, comparison_*) in ``--results`` are read.
 """
@@ -16,6 +17,7 @@ from pathlib import Path
 from nvs.core.atomic import write_bytes, write_text
 from nvs.core.errors import UserError
 from nvs.report.pareto import default_csvs, load_rows, plot, render_markdown
+from nvs.sweep.pick import PICK_COST, pareto_pick_line
 
 
 def run(argv: list[str] | None = None) -> tuple[Path, Path]:
@@ -28,7 +30,9 @@ def run(argv: list[str] | None = None) -> tuple[Path, Path]:
     agg = load_rows(sources)
     command = "python -m nvs.pareto " + " ".join(sys.argv[1:] if argv is None else argv)
     md, png = results / "pareto.md", results / "pareto.png"
-    write_text(md, render_markdown(agg, sources, command.strip()))
+    picks = {data: pareto_pick_line(g.to_dict("records")) for data, g in agg.groupby("data", sort=False)
+             if PICK_COST in g}
+    write_text(md, render_markdown(agg, sources, command.strip(), picks))
     write_bytes(png, plot(agg))
     return md, png
 

@@ -72,7 +72,7 @@ def load_rows(csv_paths: list[Path]) -> pd.DataFrame:
     cols = [c for c, *_ in ERRORS] + [c for c, _ in COSTS]
     agg = df.groupby(["data", "run"], sort=False).agg(
         label=("label", "first"), study=("study", "first"), seeds=("seed", "nunique"),
-        **{c: (c, "mean") for c in cols}).reset_index()
+        dirs=("run_dir", lambda d: [str(x) for x in d]), **{c: (c, "mean") for c in cols}).reset_index()
     for err, _, higher in ERRORS:
         for cost, _ in COSTS:
             flags = pd.Series(False, index=agg.index)
@@ -91,7 +91,9 @@ def _int_text(v) -> str:
         return "?"
 
 
-def render_markdown(agg: pd.DataFrame, sources: list[Path], command: str) -> str:
+def render_markdown(agg: pd.DataFrame, sources: list[Path], command: str, picks: dict[str, str] | None = None) -> str:
+    """The report; ``picks``: a dataset's pick sentence (``nvs.pareto``: the cheapest row at evaluation within the
+    margin of the best L1, decided by the interval), printed under its table."""
     (l1, _, _), (ssim, _, _) = ERRORS
     lines = [
         "# Run time against error", "",
@@ -115,6 +117,8 @@ def render_markdown(agg: pd.DataFrame, sources: list[Path], command: str) -> str
                          f"| {SPECS[ssim].format(r[ssim])} "
                          f"| {r['train_wall_s']:.0f} | {r['eval_forward_ms_per_image']:.2f} | " + " | ".join(flags) + " |")
         lines.append("")
+        if picks and data in picks:
+            lines += [picks[data], ""]
     return "\n".join(lines)
 
 

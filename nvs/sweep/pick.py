@@ -3,7 +3,10 @@ interval of its L1 against the best (``nvs.sweep.bootstrap``), the point estimat
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from nvs.sweep.bootstrap import Gap, paired_gap, read_seeds
+from nvs.sweep.paper_order import gap_text
 
 PICK_L1_TOLERANCE = 0.01
 PICK_COST = "eval_forward_ms_per_image"
@@ -52,3 +55,30 @@ def within_margin(row: dict, best: dict, tolerance: float = PICK_L1_TOLERANCE,
     if gap is None or gap.lo is None:
         return row["l1"][0] <= best["l1"][0] + margin, None
     return (not gap.near and gap.hi <= margin), gap
+
+
+def pareto_pick_line(rows: list[dict], cost: str = PICK_COST, tolerance: float = PICK_L1_TOLERANCE) -> str:
+    """The Pareto report's pick for one dataset: the cheapest row at evaluation within ``tolerance`` of the best L1,
+    decided as ``pick_with_gap``, and its speed-up over the best. ``rows``: dicts with "label", "l1", ``cost`` (means)
+    and "dirs" (the jobs, for the per-image results)."""
+    entries = [{"kind": "train", "oracle": False, "label": r["label"], "dirs": [Path(d) for d in r["dirs"]],
+                "l1": (_number(r["l1"]),), cost: (_number(r[cost]),)} for r in rows]
+    best, pick, gap = pick_with_gap(entries, cost, tolerance)
+    if best is None or pick is None:
+        return "No pick: no row has both an L1 and an eval time."
+    line = (f"**Pick**: {pick['label']}, the cheapest at evaluation within {100 * tolerance:g}% of the best L1 "
+            f"({best['l1'][0]:.4f}, {best['label']})")
+    if pick is best:
+        return line + ": the best row itself; no cheaper row is shown to stay within that margin."
+    line += (f", shown by the interval of ΔL1 against it, {gap_text(gap, 4)} (upper end at most "
+             f"{tolerance * best['l1'][0]:.4f})" if gap is not None else
+             ", by the point estimate (no per-image results to give an interval)")
+    return line + f": {best[cost][0] / pick[cost][0]:.2f}× faster at evaluation than the best row."
+
+
+def _number(v) -> float | None:
+    try:
+        v = float(v)
+    except (TypeError, ValueError):
+        return None
+    return None if v != v else v
