@@ -3,8 +3,9 @@
 Writes ``results/pareto.md`` and ``results/pareto.png``: L1 and SSIM (paper) of every trained row against its train
 wall time and against its evaluation forward time per image, one colour per dataset, the Pareto front of each dataset
 marked, and under each dataset's table the pick: the cheapest row at evaluation whose L1 is within 1% of the best,
-decided by the interval of its L1 against the best (``nvs.sweep.pick``). Reference rows (no training) are left out; a job shared by several studies counts once. Rows trained at
-different scales (image size, steps) are never compared: each scale of a dataset is its own series and front.
+decided by the interval of its L1 against the best (``nvs.sweep.pick``). Reference rows (no training) are left out;
+a job shared by several studies counts once. Rows trained at different scales (image size, steps) are never
+compared: each scale of a dataset is its own series and front.
 By default the paper's studies (ablation, comparison_*) in ``--results`` are read.
 """
 
