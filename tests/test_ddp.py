@@ -100,6 +100,7 @@ def test_ddp_training_validates_and_tests_on_every_pair(odd_root, tmp_path):
 
 
 # -- the submitit launcher -------------------------------------------------------------------------------------------
+@pytest.mark.slow  # ~55 s: a study through submitit-local end to end (make test-all)
 def test_a_tiny_study_runs_through_submitit_local(objects_root, tmp_path):
     pytest.importorskip("hydra_plugins.hydra_submitit_launcher", reason="pip install -e '.[cluster]'")
     study = tmp_path / "tiny.yaml"

@@ -272,6 +272,7 @@ def test_nonfinite_skip_drops_the_bad_steps_and_finishes(objects_root, tmp_path,
 
 
 # -- the report -----------------------------------------------------------------------------------------------------
+@pytest.mark.slow  # ~35 s: the whole report (make test-all); its parts have fast tests above
 def test_stress_report_has_provenance_and_tables(tmp_path):
     out = tmp_path / "stress.md"
     text = stress.main(["--sections", "geometry,gradcheck", "--out", str(out)])
