@@ -70,10 +70,17 @@ def pareto_pick_line(rows: list[dict], cost: str = PICK_COST, tolerance: float =
             f"({best['l1'][0]:.4f}, {best['label']})")
     if pick is best:
         return line + ": the best row itself; no cheaper row is shown to stay within that margin."
-    line += (f", shown by the interval of ΔL1 against it, {gap_text(gap, 4)} (upper end at most "
-             f"{tolerance * best['l1'][0]:.4f})" if gap is not None else
-             ", by the point estimate (no per-image results to give an interval)")
-    return line + f": {best[cost][0] / pick[cost][0]:.2f}× faster at evaluation than the best row."
+    return line + margin_clause(best, gap, tolerance) + \
+        f": {best[cost][0] / pick[cost][0]:.2f}× faster at evaluation than the best row."
+
+
+def margin_clause(best: dict, gap: Gap | None, tolerance: float = PICK_L1_TOLERANCE) -> str:
+    """How a pick other than the best was put within the margin: its interval of ΔL1 against the best (``gap``), or
+    the point estimate when there were no per-image results (``gap`` None)."""
+    if gap is None:
+        return ", by the point estimate (no per-image results to give an interval)"
+    return (f", shown by the interval of ΔL1 against it, {gap_text(gap, 4)} (upper end at most "
+            f"{tolerance * best['l1'][0]:.4f})")
 
 
 def _number(v) -> float | None:

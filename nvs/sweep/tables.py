@@ -14,9 +14,9 @@ from nvs.sweep.collect import SKIP_LEVELS, collect, render_csv, summarize
 from nvs.sweep.convergence_report import convergence_tables, curves_png
 from nvs.sweep.goal_lines import against_base, goals, md_cell, test_sets_cell
 from nvs.sweep.jobs import Job
-from nvs.sweep.paper_order import decide, gap_text, ordering_lines
+from nvs.sweep.paper_order import decide, ordering_lines
 from nvs.sweep.per_model_plot import per_model_png
-from nvs.sweep.pick import PICK_COST, PICK_L1_TOLERANCE, pick_with_gap
+from nvs.sweep.pick import PICK_COST, PICK_L1_TOLERANCE, margin_clause, pick_with_gap
 from nvs.sweep.study import Study, row_seeds
 
 
@@ -221,9 +221,7 @@ def _pick_sentence(best: dict | None, pick: dict | None, base: dict | None, pct:
     head = f"**Pick**: {md_cell(pick['label'])}, the cheapest at evaluation within {pct} of the best L1 " \
            f"({best['l1'][0]:.4f}, {md_cell(best['label'])})"
     if pick is not best:
-        head += (f", shown by the interval of ΔL1 against it, {gap_text(gap, 4)} (upper end at most "
-                 f"{PICK_L1_TOLERANCE * best['l1'][0]:.4f})" if gap is not None else
-                 ", by the point estimate (no per-image results to give an interval)")
+        head += margin_clause(best, gap)
     if base is None or pick is base:
         return head + ": no configuration cheaper than the first row stays within that margin, so nothing can be " \
                       "skipped here at this budget."
