@@ -5,7 +5,8 @@ Reference models that need no training are evaluated without a checkpoint: ``mod
 
 Skipping at inference (docs/skipping.md): ``route=fit`` or ``route=<route_rule.json>`` routes each pair to copy, warp
 or the full decoder (``nvs.run.routing``); ``skips_threshold=calibrate`` picks the adaptive skips' threshold on the
-validation pairs (``nvs.run.skips_calibration``).
+validation pairs (``nvs.run.skips_calibration``). ``time_sizes=[64,256]`` adds the forward time per image at those
+sizes (and per route) to metrics.json (``nvs.run.size_timing``).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from nvs.core.errors import UserError, user_message
+from nvs.core.types import ROUTES
 from nvs.run.build import build_data
 from nvs.run.checkpoints import restore_module, restore_run_config
 from nvs.run.cli import before_hydra, exits_cleanly, hydra_task
@@ -26,6 +28,7 @@ from nvs.run.display_callbacks import PairTestBar
 from nvs.run.inference_skipping import skip_at_inference
 from nvs.run.precision import Choice, choose
 from nvs.run.routing import RULE_FILE, route_option, write_rule
+from nvs.run.size_timing import sizes_option, timing_by_size
 from nvs.run.skips_calibration import threshold_option
 from nvs.run.validation_pass import Calibration
 from nvs.run.artifacts import (check_writable, is_global_zero, run_record, summary_line, test_record,
@@ -51,13 +54,14 @@ def _evaluate(cfg: DictConfig, out_dir: Path, stop: SignalStop) -> dict:
         raise UserError(f"limit={limit}: expected a positive number of test pairs (limit=null: all of them)")
     route, threshold = route_option(cfg.get("route")), threshold_option(cfg.get("skips_threshold"))
     settings = Calibration.from_config(cfg.get("calibration"))
+    sizes, repeats = sizes_option(cfg.get("time_sizes"), cfg.get("time_repeats", 5))
     run, ckpt = restore_run_config(cfg)
     asked = _size_override()
     if ckpt is not None and asked is not None and asked != str(run.data.size):
         raise UserError(f"data.size={asked}: {cfg.ckpt_path} was trained at {run.data.size}x{run.data.size} and is "
                         "evaluated at that size; drop data.size")
-    if ckpt is None and (route or threshold is not None):
-        raise UserError("route / skips_threshold act on a trained network: give ckpt_path=...")
+    if ckpt is None and (route or threshold is not None or sizes):
+        raise UserError("route / skips_threshold / time_sizes act on a trained network: give ckpt_path=...")
     L.seed_everything(int(run.seed), workers=True)
     datamodule = build_data(run)
     datamodule.validate(("test",))
@@ -84,6 +88,11 @@ def _evaluate(cfg: DictConfig, out_dir: Path, stop: SignalStop) -> dict:
     elapsed = time.perf_counter() - t0
     tested = f"checkpoint {cfg.ckpt_path}" if cfg.ckpt_path else "a reference model (nothing trained)"
     result = {**run_record(module, run, choice), **test_record(module, elapsed, cfg.ckpt_path, tested), **extra}
+    if sizes:  # after the test: a routed network's times are mixed at the test pairs' route shares
+        summary = module.test_summary()
+        shares = {r: summary[f"route_share_{r}"] for r in ROUTES} if route else None
+        batch = next(iter(datamodule.test_dataloader()))
+        result["timing_by_size"] = timing_by_size(module, run, batch, sizes, repeats, precision, shares)
     if trainer.is_global_zero:  # the rows are gathered from every rank: one writer
         if rule_file is not None:
             write_rule(out_dir / RULE_FILE, rule_file)

@@ -153,6 +153,9 @@ def test_the_fit_finds_the_cheapest_rule_within_the_tolerance_on_a_hand_made_tab
     # nothing cheaper is good enough: all full, every threshold "never"
     worse = {"copy": np.full(6, 9.0), "warp": np.full(6, 9.0), "full": np.full(6, 0.3)}
     assert fit_rule(TABLE[0], worse, COSTS, tolerance=0.01)[0] == RouteRule()
+    # a negative tolerance asks for a margin below the full decoder: L1 1.5 = (1 - 1/6) x 1.8 is still reached
+    rule, stats = fit_rule(*TABLE, COSTS, tolerance=-1 / 6)
+    assert rule == RouteRule(5.0, 0.02, 4.0) and stats["l1_budget"] == pytest.approx(1.5 / 6)
 
 
 def _exhaustive(features, l1, costs, tolerance):
@@ -187,8 +190,11 @@ def test_the_fit_obeys_the_tolerance_and_matches_an_exhaustive_search(seed, tole
 
 
 def test_the_fit_refuses_what_it_cannot_fit():
-    with pytest.raises(ValueError, match="tolerance=-0.1"):
-        fit_rule(*TABLE, COSTS, tolerance=-0.1)
+    with pytest.raises(ValueError, match="tolerance=-1"):
+        fit_rule(*TABLE, COSTS, tolerance=-1)
+    # the best any rule can do here is L1 1.2 (each pair's best route): half the full decoder's 1.8 is out of reach
+    with pytest.raises(ValueError, match="no rule reaches 0.5 x the full decoder's"):
+        fit_rule(*TABLE, COSTS, tolerance=-0.5)
     with pytest.raises(ValueError, match="same positive number of pairs"):
         fit_rule({**TABLE[0], "pose_px": np.zeros(5)}, TABLE[1], COSTS, 0.01)
     with pytest.raises(ValueError, match="non-finite"):
@@ -364,5 +370,7 @@ def test_the_new_evaluate_keys_leave_committed_evaluations_current(tmp_path):
     from nvs.sweep.jobs import config_changes
 
     new = OmegaConf.to_container(compose("evaluate", ["model=copy_source", "data=chairs"]), resolve=False)
-    old = {k: v for k, v in new.items() if k not in ("route", "skips_threshold", "calibration")}
+    old = {k: v for k, v in new.items()
+           if k not in ("route", "skips_threshold", "calibration", "time_sizes", "time_repeats")}
     assert config_changes(old, new) == [] and new["route"] == "off" and new["skips_threshold"] is None
+    assert new["time_sizes"] is None

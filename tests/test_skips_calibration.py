@@ -68,6 +68,15 @@ def test_the_threshold_option():
             threshold_option(bad)
 
 
+def test_the_tolerance_may_be_negative_for_a_margin_but_not_minus_one_or_less():
+    from nvs.run.validation_pass import Calibration
+
+    assert Calibration.from_config({"tolerance": -0.05}).tolerance == -0.05
+    for bad in (-1, -2.0, True, math.nan, "0.01"):
+        with pytest.raises(UserError, match="calibration.tolerance="):
+            Calibration.from_config({"tolerance": bad})
+
+
 @pytest.mark.slow
 def test_evaluate_calibrates_the_threshold_on_the_validation_pairs(objects_root, tmp_path):
     from nvs.evaluate import evaluate
@@ -103,3 +112,5 @@ def test_evaluate_calibrates_the_threshold_on_the_validation_pairs(objects_root,
     assert given["skips_threshold"]["threshold_px"] == 0.0 and given["test"]["warp_skipped"] == 0.0
     with pytest.raises(UserError, match="has no adaptive skips"):
         run(random_ckpt(), "skips_threshold=calibrate")
+    with pytest.raises(UserError, match="calibration.tolerance=-0.05: skips_threshold=calibrate needs"):
+        run(adaptive, "skips_threshold=calibrate", "calibration.tolerance=-0.05")

@@ -11,7 +11,8 @@ A threshold of None never fires (a NaN or an infinite feature never passes one e
 The fit (:func:`fit_rule`) tries every combination of up to ``candidates`` thresholds per feature (observed values,
 spread over their sorted distinct values, plus "never") and keeps the one of least mean cost whose mean validation L1
 is at most ``(1 + tolerance)`` times the full decoder's. Ties go to the lower L1, then to the smaller thresholds
-(enumeration order), so the fit is deterministic. All-``full`` always qualifies.
+(enumeration order), so the fit is deterministic. All-``full`` qualifies at any tolerance >= 0; a negative tolerance
+(the rule must beat the full decoder by that fraction: a margin for the test pairs) may have no rule.
 """
 
 from __future__ import annotations
@@ -91,12 +92,13 @@ def fit_rule(features: dict[str, np.ndarray], l1: dict[str, np.ndarray], costs: 
     """The rule of least mean cost whose mean L1 is within ``tolerance`` of the full decoder's, and its statistics.
 
     features: {pose_px, disocclusion, disp_mean_px: (n,)} per validation pair; l1: {route: (n,)} each route's L1 on
-    every pair; costs: {route: cost of one pair} (any unit); tolerance >= 0 (0.01: 1 % more L1 allowed);
+    every pair; costs: {route: cost of one pair} (any unit); tolerance > -1 (0.01: 1 % more L1 allowed; a negative
+    one asks for a rule that much better than the full decoder, which may not exist: ValueError);
     candidates: thresholds tried per feature. -> (rule, {n_pairs, tolerance, l1_<route>, l1_routed, l1_budget,
     share_<route>, cost, cost_full}) with costs as means per pair.
     """
-    if not tolerance >= 0:
-        raise ValueError(f"tolerance={tolerance!r}: expected a number >= 0")
+    if not tolerance > -1:
+        raise ValueError(f"tolerance={tolerance!r}: expected a number > -1")
     if isinstance(candidates, bool) or not isinstance(candidates, int) or candidates < 1:
         raise ValueError(f"candidates={candidates!r}: expected a positive integer")
     pose, disocc, disp = (np.asarray(features[k], dtype=np.float64) for k in ("pose_px", "disocclusion",
@@ -125,7 +127,10 @@ def fit_rule(features: dict[str, np.ndarray], l1: dict[str, np.ndarray], costs: 
             key = (total_cost[ib, ic], total_l1[ib, ic])
             if best is None or key < best[0]:
                 best = (key, ia, ib, ic)
-    _, ia, ib, ic = best  # the all-full rule (a = b = -inf) is always feasible
+    if best is None:  # only with a negative tolerance: the all-full rule (a = b = -inf) is feasible at >= 0
+        raise ValueError(f"no rule reaches {1 + tolerance:g} x the full decoder's mean validation L1 "
+                         f"({table[2].mean():.5f}); the best single route has {table.mean(1).min():.5f}")
+    _, ia, ib, ic = best
     rule = _rule(A[ia], Bd[ib], C[ic])
     routes = rule.routes(pose, disocc, disp)
     routed = table[routes, np.arange(n)]

@@ -163,6 +163,8 @@ class Evaluate:  # conf/evaluate.yaml
     route: Any = _typed()  # off, fit or a rule file (nvs.run.routing.route_option)
     skips_threshold: Any = _typed()  # null, calibrate or pixels (nvs.run.skips_calibration.threshold_option)
     calibration: Calibration = _typed()
+    time_sizes: Any = _typed()  # null or image sizes (nvs.run.size_timing.sizes_option)
+    time_repeats: int = _typed()
 
 
 @dataclass

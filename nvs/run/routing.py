@@ -72,8 +72,12 @@ def fit(module: NVSModule, datamodule: NVSDataModule, ckpt: dict, settings: Cali
     # the costs are counted on one validation pair, on the CPU, before the pass moves the network
     costs = route_costs(module.net, default_collate([datamodule.dataset("val")[0]]))
     table = validation_columns(net, datamodule, _route_table, settings, placement, precision)
-    rule, stats = fit_rule({k: table[k] for k in FEATURES}, {r: table[f"l1_{r}"] for r in ("copy", "warp", "full")},
-                           costs, settings.tolerance, settings.candidates)
+    try:
+        rule, stats = fit_rule({k: table[k] for k in FEATURES},
+                               {r: table[f"l1_{r}"] for r in ("copy", "warp", "full")}, costs, settings.tolerance,
+                               settings.candidates)
+    except ValueError as err:
+        raise UserError(f"route=fit with calibration.tolerance={settings.tolerance}: {err}") from None
     return {"kind": KIND, "version": VERSION, "rule": rule.as_dict(), "tolerance": settings.tolerance,
             "candidates": settings.candidates, "costs": costs,
             "checkpoint": {"path": str(ckpt.get("path")), "weights_sha256": weights_id(ckpt)}, "validation": stats}

@@ -91,6 +91,9 @@ def calibrate(module: NVSModule, datamodule: NVSDataModule, settings: Calibratio
               precision) -> dict:
     """Pick the threshold on the validation pairs and set it on the network -> the calibration's record."""
     skips = adaptive_skips(module)
+    if settings.tolerance < 0:
+        raise UserError(f"calibration.tolerance={settings.tolerance}: skips_threshold=calibrate needs a tolerance "
+                        ">= 0 (its reference, threshold 0, is one of the thresholds it picks from)")
     table = validation_columns(module.net, datamodule, _columns(skips), settings, placement, precision)
     bounds = np.stack([table[f"bound_{lv}"] for lv in skips.levels], 1)
     l1 = np.stack([table[f"l1_{k}"] for k in range(len(skips.levels) + 1)], 1)

@@ -21,7 +21,7 @@ from nvs.module.pair_pass import Columns, PairPass
 class Calibration:
     """``calibration.*``: the L1 margin a fit may spend, the validation pairs it reads, the thresholds it tries."""
 
-    tolerance: float = 0.01  # mean validation L1 at most (1 + tolerance) x the reference's
+    tolerance: float = 0.01  # mean validation L1 at most (1 + tolerance) x the reference's (< 0: routes only)
     val_pairs: int | None = None  # the first N validation pairs (None: all)
     candidates: int = 32  # thresholds tried per feature by the route fit
 
@@ -34,8 +34,9 @@ class Calibration:
                             "candidates)")
         out = cls(**node)
         t = out.tolerance
-        if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t < 0:
-            raise UserError(f"calibration.tolerance={t!r}: expected a number >= 0 (0.01: 1% more L1 allowed)")
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t <= -1:
+            raise UserError(f"calibration.tolerance={t!r}: expected a number > -1 (0.01: 1% more L1 allowed; "
+                            "-0.05: the route rule must be 5% better than the full decoder)")
         for key in ("val_pairs", "candidates"):
             v = getattr(out, key)
             if (v is not None or key == "candidates") and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
