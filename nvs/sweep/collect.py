@@ -168,7 +168,8 @@ def summarize(study: Study, records: list[dict]) -> list[dict]:
              "data": next((r["data"] for r in recs if r["data"]), row.data), "paper": row.paper,
              "oracle": row.oracle, "stands_for": row.stands_for, "evaluates": row.evaluates,
              "overrides": row.overrides, "notes": _notes(recs),
-             "dirs": [r["dir"] for r in done if r.get("dir")]}
+             "dirs": [r["dir"] for r in done if r.get("dir")],
+             "seeds": [r["seed"] for r in done if r.get("dir")]}  # the seed of each of 'dirs'
         for k in (*METRICS, "params", "train_wall_s", *COSTS, *SKIP_FRACTIONS, *ROUTE_SHARES, *timed):
             s[k] = mean_std([_num(r.get(k)) for r in done])
         out.append(s)

@@ -3,9 +3,12 @@ each timed size, and each evaluation row against the trained row it evaluates (`
 
 The columns appear only where some row has their values (``Columns.of``), so a table without routes or timed sizes
 is the one it always was. An evaluation row's line: ΔL1 = evaluated − trained on the test pairs both were tested on,
-with the interval of the two-level bootstrap (``nvs.sweep.bootstrap``: each row's seeds, then the test models or
-sequences), its verdict against zero, whether it is shown within the pick's margin of the trained row's L1
-(``nvs.sweep.pick.within_margin``) and the speed-up of its forward at the largest timed size.
+paired by seed as well (seed s of the evaluation is seed s's network evaluated again, so the seeds' spread of the
+trained networks cancels): per seed, each pair's difference; then the two-level bootstrap of ``nvs.sweep.bootstrap``
+over those differences (the seeds, then the test models or sequences, as levels) against zero. The line gives the
+interval, its verdict against zero, whether it is shown within the pick's margin of the trained row's L1 (the
+interval's upper end at most ``PICK_L1_TOLERANCE`` of it, as ``nvs.sweep.pick.within_margin`` decides a pick; the
+point estimate without per-image results) and the speed-up of the forward at the largest timed size.
 """
 
 from __future__ import annotations
@@ -13,11 +16,15 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from nvs.sweep.bootstrap import LEVEL, interval_words, one_seed_note, paired_gap, read_seeds, verdict
+import math
+from pathlib import Path
+
+from nvs.sweep.bootstrap import (LEVEL, PER_IMAGE, Gap, interval_words, one_seed_note, paired_gap, read_per_image,
+                                 verdict)
 from nvs.sweep.collect import ROUTE_SHARES, size_columns
 from nvs.sweep.goal_lines import md_cell
 from nvs.sweep.paper_order import gap_text
-from nvs.sweep.pick import PICK_L1_TOLERANCE, within_margin
+from nvs.sweep.pick import PICK_L1_TOLERANCE
 
 _MS = re.compile(r"eval_(\d+)px_ms_per_image")
 
@@ -69,9 +76,10 @@ class Columns:
             pct = f"{100 * PICK_L1_TOLERANCE:g}%"
             text.append("An evaluation row evaluates a trained row's checkpoints again with its own `nvs.evaluate` "
                         "settings: it is never the best or the pick; under the table it is compared with that row, "
-                        f"ΔL1 = evaluated − trained on the same test pairs with its {100 * LEVEL:g}% interval (two-"
-                        f"level bootstrap: each row's seeds, then the test models or sequences; {interval_words()}); "
-                        "**better** / **worse**: the interval lies on one side of zero; within "
+                        "ΔL1 = evaluated − trained on the same test pairs and seeds (each seed's network against "
+                        f"itself evaluated again), with its {100 * LEVEL:g}% interval (two-level bootstrap of the "
+                        "per-seed differences: the seeds, then the test models or sequences; "
+                        f"{interval_words()}); **better** / **worse**: the interval lies on one side of zero; within "
                         f"{pct}: its upper end is at most {pct} of the trained row's L1, as for the pick.")
         return " ".join(text)
 
@@ -88,22 +96,47 @@ def evaluation_lines(rows: list[dict], columns: Columns) -> list[str]:
     return [*lines, ""] if lines else []
 
 
+def seed_differences(r: dict, src: dict, metric: str = "l1") -> list[dict]:
+    """Per seed both rows finished, each test pair's ``metric`` of ``r`` minus ``src``'s (a ``read_seeds``-like
+    list, one dict per seed); pairs missing from either job or NaN left out."""
+    mine = dict(zip(r.get("seeds") or [], r.get("dirs") or []))
+    theirs = dict(zip(src.get("seeds") or [], src.get("dirs") or []))
+    out = []
+    for seed in sorted(set(mine) & set(theirs)):
+        a, b = (read_per_image(Path(d) / PER_IMAGE) for d in (mine[seed], theirs[seed]))
+        diff = {p: {metric: a[p][metric] - b[p][metric]} for p in a.keys() & b.keys()
+                if not math.isnan(a[p].get(metric, math.nan) - b[p].get(metric, math.nan))}
+        if diff:
+            out.append(diff)
+    return out
+
+
+def paired_by_seed(diffs: list[dict], metric: str = "l1", threshold: float = 0.0) -> Gap:
+    """The bootstrap of the per-seed differences (``seed_differences``) against zero: Δ, its interval, the seeds."""
+    zero = [{p: {metric: 0.0} for d in diffs for p in d}] if diffs else []
+    return paired_gap(diffs, zero, metric, threshold=threshold)
+
+
 def evaluation_line(r: dict, src: dict, columns: Columns, tolerance: float = PICK_L1_TOLERANCE) -> str:
-    """'- <row> (`route=fit`) against <trained row>: ΔL1 Δ +0.0012 [-0.0010, +0.0035] over ..., 3 seeds:
+    """'- <row> (`route=fit`) against <trained row>: ΔL1 +0.0012 [-0.0010, +0.0035] over ..., 3 seeds:
     **unresolved**; within 1% of its L1 (...); eval 256² 1.62× faster'."""
     settings = " ".join(r.get("overrides") or ())
     head = f"- {md_cell(r['label'])}" + (f" (`{settings}`)" if settings else "") + f" against {md_cell(src['label'])}"
-    gap = paired_gap(read_seeds(list(r.get("dirs") or [])), read_seeds(list(src.get("dirs") or [])), "l1")
+    diffs = seed_differences(r, src)
+    gap = paired_by_seed(diffs)
     pct, margin = f"{100 * tolerance:g}%", tolerance * src["l1"][0]
     if gap.diff is None:
         text = f"{head}: L1 {r['l1'][0]:.4f} against {src['l1'][0]:.4f}, no interval ({gap.why})"
     else:
         state = {"agree": "better", "swap": "worse", "unresolved": "unresolved"}[verdict(gap, False)]
-        n = min(gap.seeds)
+        n = gap.seeds[0]
         text = (f"{head}: ΔL1 {gap_text(gap, 4).removeprefix('Δ ')}, {n} seed{'s' if n != 1 else ''}: "
-                f"**{state}**{one_seed_note(gap, r['row'], src['row'])}")
-    within, decided = within_margin(r, src, tolerance)
-    how = "by the interval's upper end" if decided is not None else "by the point estimate"
+                f"**{state}**{one_seed_note(gap, r['row'], None)}")
+    decided = paired_by_seed(diffs, threshold=margin) if gap.lo is not None else None
+    if decided is None:  # no interval: the point estimate, as the pick decides without per-image results
+        within, how = r["l1"][0] <= src["l1"][0] + margin, "by the point estimate"
+    else:
+        within, how = not decided.near and decided.hi <= margin, "by the interval's upper end"
     text += (f"; within {pct} of its L1 ({margin:.4f}) {how}" if within
              else f"; not shown within {pct} of its L1 ({margin:.4f})")
     for size in reversed(columns.sizes):

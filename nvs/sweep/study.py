@@ -255,6 +255,7 @@ def load_study(path: str | Path, seeds: list[int] | None = None, size: int | Non
     bad = [m for m in metrics if m not in METRICS]
     if bad:
         raise UserError(f"{source.where(('metrics',))}: unknown metric(s) {bad}; expected some of {list(METRICS)}")
+    _check_evaluates(spec.rows, source)  # first: an evaluation row's own keys are named before any other check
     names, runs = set(), set()
     for i, row in enumerate(spec.rows):
         where = source.where(("rows", i))
@@ -266,7 +267,6 @@ def load_study(path: str | Path, seeds: list[int] | None = None, size: int | Non
     if not spec.rows:
         raise UserError(f"{source.where(('rows',))}: 'rows' is empty")
     trained = [row.name for row in spec.rows if row.kind == "train"]
-    _check_evaluates(spec.rows, source)
     _check_stands_for(spec.rows, source)
     for i, base in enumerate(spec.against):
         if base not in trained:
