@@ -358,3 +358,26 @@ def test_the_route_studys_trained_rows_are_the_committed_comparison_jobs(tmp_pat
         if j.kind == "evaluate" and j.status != Status.DONE:  # waits exactly where the checkpoint is not here
             here = j.source.status == Status.DONE and eval_rows.tested_checkpoint(j.source.dir) is not None
             assert bool(j.waiting) != here, j.dir.name
+
+
+def test_without_an_interval_the_margin_is_read_on_the_shared_pairs_not_the_rows_means(tmp_path):
+    from nvs.sweep.eval_table import Columns, evaluation_line
+
+    def job(name, l1):
+        d = tmp_path / name
+        d.mkdir()
+        lines = ["index,id_src,id_tgt,l1"] + [f"{k},m0_{20 * k}_0s,m0_{20 * k}_0,{x}" for k, x in enumerate(l1)]
+        (d / "test_per_image.csv").write_text("\n".join(lines) + "\n")
+        return d
+
+    # one test model: nothing to resample. The means differ by far more than the margin (another pair set, e.g.
+    # limit=), but on the pairs both were tested on the evaluation is 0.0005 worse, within 1% of 0.1 (0.001)
+    src = {"row": "full", "label": "Full", "l1": (0.1, None), "seeds": [0], "dirs": [job("full", [0.1] * 3)]}
+    r = {"row": "routed", "label": "Routed", "l1": (0.5, None), "overrides": ("route=fit",), "seeds": [0],
+         "dirs": [job("routed", [0.1005] * 3)]}
+    line = evaluation_line(r, src, Columns())
+    assert "ΔL1 +0.00050 over 1 test models (3 pairs); one test model: nothing to resample" in line
+    assert "1 seed (no seed spread in the interval): **unresolved**" in line
+    assert line.endswith("; within 1% of its L1 (0.0010) by the point estimate."), line
+    far = {**r, "dirs": [job("far", [0.2] * 3)]}
+    assert evaluation_line(far, src, Columns()).endswith("; not shown within 1% of its L1 (0.0010).")

@@ -19,8 +19,7 @@ from dataclasses import dataclass
 import math
 from pathlib import Path
 
-from nvs.sweep.bootstrap import (LEVEL, PER_IMAGE, Gap, interval_words, one_seed_note, paired_gap, read_per_image,
-                                 verdict)
+from nvs.sweep.bootstrap import LEVEL, PER_IMAGE, Gap, interval_words, paired_gap, read_per_image, verdict
 from nvs.sweep.collect import ROUTE_SHARES, size_columns
 from nvs.sweep.goal_lines import md_cell
 from nvs.sweep.paper_order import gap_text
@@ -130,11 +129,12 @@ def evaluation_line(r: dict, src: dict, columns: Columns, tolerance: float = PIC
     else:
         state = {"agree": "better", "swap": "worse", "unresolved": "unresolved"}[verdict(gap, False)]
         n = gap.seeds[0]
-        text = (f"{head}: ΔL1 {gap_text(gap, 4).removeprefix('Δ ')}, {n} seed{'s' if n != 1 else ''}: "
-                f"**{state}**{one_seed_note(gap, r['row'], None)}")
+        seeds = f"{n} seeds" if n != 1 else "1 seed (no seed spread in the interval)"
+        text = f"{head}: ΔL1 {gap_text(gap, 4).removeprefix('Δ ')}, {seeds}: **{state}**"
     decided = paired_by_seed(diffs, threshold=margin) if gap.lo is not None else None
-    if decided is None:  # no interval: the point estimate, as the pick decides without per-image results
-        within, how = r["l1"][0] <= src["l1"][0] + margin, "by the point estimate"
+    if decided is None:  # no interval: the point estimate (over the shared pairs where there are some)
+        diff = gap.diff if gap.diff is not None else r["l1"][0] - src["l1"][0]
+        within, how = diff <= margin, "by the point estimate"
     else:
         within, how = not decided.near and decided.hi <= margin, "by the interval's upper end"
     text += (f"; within {pct} of its L1 ({margin:.4f}) {how}" if within
