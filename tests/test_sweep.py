@@ -22,7 +22,7 @@ STUDIES = sorted((REPO / "sweeps").glob("*.yaml"))
 
 
 def _compose_row(study: sweep.Study, row: sweep.Row, seed: int = 0):
-    name = "evaluate" if row.reference else "train"
+    name = "train" if row.kind == "train" else "evaluate"
     return compose_train([*sweep.row_overrides(study, row), f"seed={seed}"], config_name=name)
 
 
@@ -38,7 +38,10 @@ def test_every_study_row_composes_with_the_real_config(path, scale, tmp_path):
     assert study.rows and study.seeds
     for row in study.rows:
         cfg = _compose_row(study, row)
-        check_config("evaluate" if row.reference else "train", cfg)  # the typed schema takes every row
+        check_config("train" if row.kind == "train" else "evaluate", cfg)  # the typed schema takes every row
+        if row.evaluates:  # an evaluation row: nvs.evaluate's settings only; data and model come with the checkpoint
+            assert cfg.ckpt_path is None and cfg.data.get("name") is None, row.name
+            continue
         cfg.paths.output_dir = str(tmp_path)
         if row.reference:
             cfg.out_dir = str(tmp_path)
@@ -57,7 +60,7 @@ def test_each_study_carries_every_reference_row_per_dataset():
     mean, and (an oracle) each image's plane at its ground-truth mean."""
     for path in STUDIES:
         study = sweep.load_study(path)
-        datasets = {_compose_row(study, r).data.name for r in study.rows if not r.reference}
+        datasets = {_compose_row(study, r).data.name for r in study.rows if r.kind == "train"}
         for data in datasets:
             refs = {r.reference: r for r in study.rows if r.reference and r.data == data}
             assert set(refs) == {"copy_source", "gt_warp", "mean_depth", "gt_plane"}, (path.stem, data)
@@ -77,8 +80,11 @@ def test_runs_shared_between_studies_have_the_same_config(tmp_path):
             assert seen[1] == job.digest, f"{job.dir.name}: {seen[2]} and {study.name} compose it differently"
     # Seed 0 of the tables' method rows is the convergence study's job: trained once, reused by every table.
     assert users["nvs_chairs_conv_s0"] == {"convergence", "ablation", "depth", "comparison_objects", "fidelity",
-                                           "data_scale"}
+                                           "data_scale", "route"}
     assert users["chen_drive_conv_s0"] == {"convergence", "comparison_drive"}
+    # the route study's trained rows are the comparison studies' jobs, not jobs of its own
+    assert users["fid_colour_norms_s1"] >= {"comparison_objects", "route"}
+    assert users["fid_colour_norms_drive_s0"] >= {"comparison_drive", "route"}
 
 
 def test_ablation_rows_switch_what_they_say():

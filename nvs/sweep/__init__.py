@@ -1,14 +1,17 @@
 """The sweep runner: ``python -m nvs.sweep sweeps/<study>.yaml`` runs a study's jobs, then tabulates them.
 
 One module per idea: ``study`` (the typed study-file schema, read by ``schema``), ``jobs`` (a job, its status,
-identity and planning), ``launch`` (Hydra multiruns in a subprocess), ``recorder`` (the Hydra callback inside every
-job), ``collect`` (one record per job, the CSV), ``bootstrap`` (the two-level bootstrap over seeds and test groups),
-``verdict_trace`` (a verdict per test group: wins, sign test, the groups that undo it), ``testset`` (the test set a
-job was measured on), ``goal_lines`` (the converged studies' goals, rows against a base row), ``paper_order`` (the
-rows against the paper's order), ``per_model_plot`` (their per-model figure), ``tables`` (the Markdown tables, cost
-tables), ``pick`` (a cost table's pick, by the interval), ``paper_tally`` (the committed tables' count of the
-paper's orderings) and ``__main__`` (the command line). Names are also reachable as ``nvs.sweep.<name>``, loaded
-on first use, so that importing ``nvs.sweep.recorder`` inside a training job loads nothing else.
+identity and planning; ``fingerprint``: its stored config and what makes it stale; ``eval_rows``: the jobs of an
+evaluation row, nvs.evaluate on another row's checkpoints), ``launch`` (Hydra multiruns in a subprocess),
+``recorder`` (the Hydra callback inside every job), ``collect`` (one record per job, the CSV), ``bootstrap`` (the
+two-level bootstrap over seeds and test groups), ``verdict_trace`` (a verdict per test group: wins, sign test, the
+groups that undo it), ``testset`` (the test set a job was measured on), ``goal_lines`` (the converged studies'
+goals, rows against a base row), ``paper_order`` (the rows against the paper's order), ``per_model_plot`` (their
+per-model figure), ``tables`` (the Markdown tables, cost tables; ``eval_table``: their route and timed-size columns,
+evaluation rows against their trained rows), ``pick`` (a cost table's pick, by the interval), ``paper_tally`` (the
+committed tables' count of the paper's orderings) and ``__main__`` (the command line). Names are also reachable as
+``nvs.sweep.<name>``, loaded on first use, so that importing ``nvs.sweep.recorder`` inside a training job loads
+nothing else.
 """
 
 from __future__ import annotations

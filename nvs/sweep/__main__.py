@@ -4,7 +4,10 @@ A study file (schema in ``sweeps/README.md``) names rows, seeds, a scale (image 
 Each (row, seed) is one job with a fixed run directory ``<runs>/<size>px_<steps>steps/<run>_s<seed>``, launched by
 ``python -m nvs.train -m`` (or ``python -m nvs.evaluate -m`` for reference rows) with
 ``hydra.sweep.dir=<runs>/<scale>`` and ``hydra.sweep.subdir=<run>_s${seed}`` -- one multirun per row over the seeds
-it still needs, through whatever Hydra launcher is selected (basic, joblib, submitit).
+it still needs, through whatever Hydra launcher is selected (basic, joblib, submitit). An evaluation row
+(``evaluates: <trained row>``, ``nvs.sweep.eval_rows``) runs ``nvs.evaluate`` on each of that row's tested checkpoints
+after the trained rows, one job at a time; one whose checkpoint is not on this machine waits (not launched, shown
+missing).
 
 Resumability: before launching, the runner writes ``sweep_job.json`` (the job's key, made of the overrides that
 define it, and its composed config) into the job directory. A job whose directory holds ``metrics.json`` and a
@@ -83,8 +86,31 @@ def _print_plan(jobs: list[Job], launching: list[Job]) -> None:
           + f"; launching {len(launching)}", file=sys.stderr)
     for j in jobs:
         mark = "->" if j in launching else "  "
+        note = j.error
+        if j.waiting and j.status != Status.DONE:  # an evaluation job without its evaluated job's checkpoint
+            note = f"after {j.source.dir.name}, trained first in this run" if j in launching else j.waiting
         print(f"[sweep] {mark} {j.row.name:<24} s{j.seed:<3} {j.status:<10} {j.dir}"
-              + (f"  ({j.error})" if j.error else ""), file=sys.stderr)
+              + (f"  ({note})" if note else ""), file=sys.stderr)
+
+
+def _after_sources(jobs: list[Job], launching: list[Job], retry_failed: bool, force: bool) -> list[Job]:
+    """The evaluation jobs that wait for a job this run launches: they run after it, when its checkpoint exists."""
+    skip = {Status.DONE} | (set() if retry_failed else {Status.FAILED})
+    ids = {id(j) for j in launching}
+    return [j for j in jobs if j.waiting and id(j.source) in ids and (force or j.status not in skip)]
+
+
+def _ready(planned: list[Job], fresh: dict[str, Job]) -> list[Job]:
+    """The evaluation jobs of ``planned`` as planned again now (``fresh``, by directory name) whose checkpoint is
+    there; one line for each that still waits (its evaluated job failed or was not run)."""
+    ready = []
+    for j in planned:
+        now = fresh.get(j.dir.name, j)
+        if now.waiting:
+            print(f"[sweep] {j.row.name} s{j.seed}: not launched, {now.waiting}", file=sys.stderr)
+        else:
+            ready.append(now)
+    return ready
 
 
 def _selected_rows(study, globs: str) -> set[str]:
@@ -136,11 +162,13 @@ def run(argv: list[str] | None = None) -> int:
     jobs = plan(study, root, extra, exported)
     launching = [] if args.collect_only is not None else to_launch(jobs, retry_failed=not args.skip_failed,
                                                                    force=args.force)
+    if launching:
+        launching += _after_sources(jobs, launching, not args.skip_failed, args.force)
     if args.rows is not None:
         launching = [j for j in launching if j.row.name in _selected_rows(study, args.rows)]
     _print_plan(jobs, launching)
     if launching and not args.force:  # never continue a study on another render of its data
-        check_launch([j for j in jobs if j.status == Status.DONE], launching)
+        check_launch([j for j in jobs if j.status == Status.DONE], [j for j in launching if j.kind != "evaluate"])
     if launching and args.collect_only is None:
         launch = Launch.local(args.jobs, args.threads, extra)
         remote = any(o.startswith("hydra/launcher=submitit_slurm") for o in extra)  # a cluster's machines
@@ -149,21 +177,34 @@ def run(argv: list[str] | None = None) -> int:
     if args.dry_run:
         launch = Launch.local(args.jobs, args.threads, extra)
         for row in study.rows:
-            seeds_left = [j.seed for j in launching if j.row is row]
-            if seeds_left:
-                print(shlex.join(multirun_command(study, row, seeds_left, root, launch, extra)))
+            left = [j for j in launching if j.row is row]
+            for batch in ([[j] for j in left] if row.evaluates else [left] if left else []):
+                if batch[0].waiting:  # its checkpoint comes from a job this run trains first
+                    print(f"# {row.name} s{batch[0].seed}: nvs.evaluate on {batch[0].source.dir.name}'s checkpoint, "
+                          "once it is trained")
+                    continue
+                print(shlex.join(multirun_command(study, row, [j.seed for j in batch], root, launch, extra,
+                                                  batch[0].source)))
         return 0
     if launching:
         launch = Launch.local(args.jobs, args.threads, extra)
         print(f"[sweep] {launch.jobs} job(s) at a time x {launch.threads} thread(s), {available_cores()} cores",
               file=sys.stderr)
-        order = [j for row in study.rows for j in launching if j.row is row]  # the order they run in
+        # the order they run in: the evaluation rows after every other (their checkpoints may be trained here)
+        rows = sorted(study.rows, key=lambda r: r.evaluates is not None)
+        order = [j for row in rows for j in launching if j.row is row]
         progress = Progress(order, skipped=len(jobs) - len(order))
         progress.begin()
         held: dict[str, str] = {}  # job -> the other sweep holding it
+        fresh: dict[str, Job] | None = None  # the evaluation jobs planned again once the trained rows have run
         with JobLocks(root) as locks:
-            for row in study.rows:
-                row_jobs = _lock(locks, [j for j in order if j.row is row], args.force, held)
+            for row in rows:
+                planned = [j for j in order if j.row is row]
+                if row.evaluates and planned:
+                    if fresh is None:
+                        fresh = {j.dir.name: j for j in plan(study, root, extra, exported) if j.row.evaluates}
+                    planned = _ready(planned, fresh)
+                row_jobs = _lock(locks, planned, args.force, held)
                 if not row_jobs:
                     continue
                 for j in row_jobs:
@@ -195,7 +236,7 @@ def run(argv: list[str] | None = None) -> int:
 
         # Drawing needs a trained job's checkpoint: committed jobs without their run directory are left out.
         dirs = [(j, root / j.dir.name if (root / j.dir.name / "checkpoints").is_dir() else j.dir)
-                for j in jobs if j.status == Status.DONE]
+                for j in jobs if j.status == Status.DONE and j.kind != "evaluate"]
         runs = [Run(d, j.row.label, j.data or "", bool(j.row.reference)) for j, d in dirs
                 if j.row.reference or (d / "checkpoints").is_dir()]
         if len(runs) < len(dirs):

@@ -1,10 +1,18 @@
-"""Collection: one record per job (status, error line, test metrics, costs) and the study's CSV; per-row means."""
+"""Collection: one record per job (status, error line, test metrics, costs) and the study's CSV; per-row means.
+
+An evaluation with a route (``nvs.evaluate route=fit``) adds the share of test pairs per route (``ROUTE_SHARES``), and
+one with ``time_sizes`` the forward time per image at each size (metrics.json's ``timing_by_size``: ``{"<S>":
+{network_ms_per_image, routed_ms_per_image?, speedup?, ...}}``), read as ``eval_<S>px_ms_per_image`` (the routed
+forward where there is a route, else the network's) and ``eval_<S>px_speedup``. The CSV has their columns only where
+some job has them, so a study without them writes the columns it always did.
+"""
 
 from __future__ import annotations
 
 import csv
 import io
 import math
+import re
 from pathlib import Path
 
 from omegaconf import OmegaConf
@@ -20,6 +28,8 @@ SKIP_FRACTIONS = ("warp_skipped", *(f"warp_skipped_{lv}" for lv in SKIP_LEVELS))
 # The stopping rule's record (nvs.run.convergence.RECORD; not imported here: that module loads Lightning).
 CONVERGENCE = "convergence.json"
 COSTS = ("eval_ms_per_image", "eval_forward_ms_per_image", "train_step_ms")
+ROUTES = ("copy", "warp", "full")
+ROUTE_SHARES = tuple(f"route_share_{r}" for r in ROUTES)  # fraction of the test pairs sent down each route
 CSV_COLUMNS = ["study", "row", "label", "kind", "data", "seed", "status", "error", *METRICS, "n_pairs", "params",
                "train_wall_s", "train_samples_per_s", "eval_ms_per_image", "steps", "image_size", "precision",
                "device", "git_sha", "run_dir", "overrides", *[f"paper_{m}" for m in METRICS],
@@ -54,6 +64,29 @@ def shown_path(p: Path) -> str:
         return str(p)
 
 
+def size_columns(size: int) -> tuple[str, str]:
+    """The record keys of one timed size: (ms per image, speed-up of the route over the network)."""
+    return f"eval_{size}px_ms_per_image", f"eval_{size}px_speedup"
+
+
+def timed_sizes(records: list[dict]) -> list[int]:
+    """The sizes some record has a forward time at (``timing_by_size``), ascending."""
+    return sorted({int(m[1]) for r in records for k, v in r.items()
+                   if v is not None and (m := re.fullmatch(r"eval_(\d+)px_ms_per_image", k))})
+
+
+def _timing(m: dict) -> dict:
+    """metrics.json's ``timing_by_size`` as record keys (``size_columns``); {} without it."""
+    out = {}
+    for size, t in sorted((m.get("timing_by_size") or {}).items(), key=lambda kv: int(kv[0])):
+        if not isinstance(t, dict):
+            continue
+        ms, speedup = size_columns(int(size))
+        out[ms] = _num(t.get("routed_ms_per_image", t.get("network_ms_per_image")))
+        out[speedup] = _num(t.get("speedup"))
+    return out
+
+
 def collect(jobs: list[Job]) -> list[dict]:
     """One record per job: its status, error line, test metrics and costs (None where absent)."""
     records = []
@@ -63,7 +96,9 @@ def collect(jobs: list[Job]) -> list[dict]:
         stop = (read_json(j.dir / CONVERGENCE) if j.status == Status.DONE else None) or {}
         test = m.get("test") or {}
         error = j.error
-        if j.status == Status.INCOMPLETE:
+        if j.waiting and j.status != Status.DONE:  # an evaluation job without its evaluated job's checkpoint
+            error = j.waiting
+        elif j.status == Status.INCOMPLETE:
             error = "interrupted; re-run the study to resume from last.ckpt"
         elif j.status == Status.STALE:
             error = stale_error(j)
@@ -80,18 +115,23 @@ def collect(jobs: list[Job]) -> list[dict]:
             "overrides": " ".join(_read_overrides(j.dir)) if j.status == Status.DONE else "",
             **{f"paper_{k}": j.row.paper.get(k) for k in METRICS},
             "stop": stop.get("outcome"), "stop_reason": stop.get("reason"),
+            **{k: _num(test.get(k)) for k in ROUTE_SHARES}, **_timing(m),
             "dir": j.dir,  # not a CSV column: where the tables read the job's per-image results
         })
     return records
 
 
 def render_csv(records: list[dict]) -> str:
+    """The CSV: ``CSV_COLUMNS``, then the route shares and per-size times where some job has them."""
+    extra = [k for k in ROUTE_SHARES if any(r.get(k) is not None for r in records)]
+    extra += [k for size in timed_sizes(records) for k in size_columns(size)]
+    columns = CSV_COLUMNS + extra
     buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=CSV_COLUMNS, extrasaction="ignore", lineterminator="\n")
+    w = csv.DictWriter(buf, fieldnames=columns, extrasaction="ignore", lineterminator="\n")
     w.writeheader()
     for r in records:
         w.writerow({k: ("" if r.get(k) is None else (f"{r[k]:.6g}" if isinstance(r[k], float) else r[k]))
-                    for k in CSV_COLUMNS})
+                    for k in columns})
     return buf.getvalue()
 
 
@@ -119,15 +159,18 @@ def _notes(recs: list[dict]) -> list[str]:
 def summarize(study: Study, records: list[dict]) -> list[dict]:
     """Per row: mean/std of each metric and cost over its done seeds, counts, and the error lines of failures."""
     out = []
+    timed = [k for size in timed_sizes(records) for k in size_columns(size)]
     for row in study.rows:
         recs = [r for r in records if r["row"] == row.name]
         done = [r for r in recs if r["status"] == Status.DONE]
         s = {"row": row.name, "label": row.label, "kind": row.kind, "reference": row.reference,
              "n_done": len(done), "n_jobs": len(recs),
              "data": next((r["data"] for r in recs if r["data"]), row.data), "paper": row.paper,
-             "oracle": row.oracle, "stands_for": row.stands_for, "notes": _notes(recs),
-             "dirs": [r["dir"] for r in done if r.get("dir")]}
-        for k in (*METRICS, "params", "train_wall_s", *COSTS, *SKIP_FRACTIONS):
-            s[k] = mean_std([_num(r[k]) for r in done])
+             "oracle": row.oracle, "stands_for": row.stands_for, "evaluates": row.evaluates,
+             "overrides": row.overrides, "notes": _notes(recs),
+             "dirs": [r["dir"] for r in done if r.get("dir")],
+             "seeds": [r["seed"] for r in done if r.get("dir")]}  # the seed of each of 'dirs'
+        for k in (*METRICS, "params", "train_wall_s", *COSTS, *SKIP_FRACTIONS, *ROUTE_SHARES, *timed):
+            s[k] = mean_std([_num(r.get(k)) for r in done])
         out.append(s)
     return out

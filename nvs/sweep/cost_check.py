@@ -25,7 +25,7 @@ def _mode_of(job: Job) -> tuple[str, object, str]:
 def check_precision(launching: list[Job], threads: int, remote: bool, accept: bool, log) -> None:
     """One line per pinned mode; a UserError when a pinned mode is measured ``WARN_SLOWDOWN`` x slower than the
     fastest here (unless ``accept``). ``remote``: the jobs run on other machines (a cluster launcher): not probed."""
-    modes = sorted({_mode_of(j) for j in launching if j.kind != "reference"}, key=str)
+    modes = sorted({_mode_of(j) for j in launching if j.kind == "train"}, key=str)
     if not modes:
         return
     if remote:

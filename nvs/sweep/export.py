@@ -2,7 +2,7 @@
 
 What a table needs from a job, and nothing heavy: ``EXPORTED`` (the metrics, the job record with its key and config,
 the per-image results, the resolved config and overrides, the CSV log with the training curves, the convergence
-record), never checkpoints or logs of stderr. ``nvs.sweep.jobs.plan`` treats an exported job whose record still
+record, an evaluation's fitted route rule), never checkpoints or logs of stderr. ``nvs.sweep.jobs.plan`` treats an exported job whose record still
 stands for the job (the same key and staleness rule as a job in ``runs/``) as done, so a fresh clone rebuilds every
 table from the committed files alone (``python -m nvs.sweep STUDY --collect-only``).
 """
@@ -19,7 +19,7 @@ from nvs.core.atomic import WriteFailed, write_bytes
 from nvs.sweep.jobs import JOB_RECORD, Job, Status
 
 EXPORTED = ("metrics.json", JOB_RECORD, "test_per_image.csv", ".hydra/config.yaml", ".hydra/overrides.yaml",
-            "csv/metrics.csv", "convergence.json")
+            "csv/metrics.csv", "convergence.json", "route_rule.json")  # the last: nvs.run.routing.RULE_FILE
 # A small file stays small: anything above this is left out (and named), so a commit never carries a large blob.
 MAX_BYTES = 8 * 1024 * 1024
 

@@ -15,7 +15,9 @@ digest. A finished job stays valid while its stored config is compatible with th
     ``--force``, as a code change does) -- unless the new node is or holds a component (a mapping with
     ``_target_``, e.g. a loss term or a callback added to the defaults), which is a change.
 A job whose key differs from its record's (the row's overrides changed) is stale too; a record from before keys were
-override-based (no ``version``) is judged by its stored config alone.
+override-based (no ``version``) is judged by its stored config alone. The fingerprint and the comparison are
+``nvs.sweep.fingerprint``'s; an evaluation row's jobs (``evaluates:``) add the evaluated job to both
+(``nvs.sweep.eval_rows``).
 """
 
 from __future__ import annotations
@@ -28,22 +30,21 @@ import shutil
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from nvs.core.atomic import write_json
-from nvs.core.legacy import SAME_BEHAVIOUR
 from nvs.run.compose import compose
+# the fingerprint's functions are also reachable here, where the sweep's other modules and the tests name them
+from nvs.sweep.fingerprint import (NEUTRAL_KEYS, SAME_BEHAVIOUR, config_changes, config_digest,  # noqa: F401
+                                   config_fingerprint)
+from nvs.sweep.eval_rows import EVALUATES, source_stamp, waiting_reason
 from nvs.sweep.recorded import as_today
 from nvs.sweep.recorder import FAILED, STDERR
 from nvs.sweep.study import Row, Study, row_seeds
 
 JOB_RECORD = "sweep_job.json"
 RECORD_VERSION = 2  # 2: the key is made of the row's overrides; the config is checked with config_changes
-# Keys that place or display a run but do not change its result; left out of the key and of the stored config.
-NEUTRAL_KEYS = ("paths", "hydra", "ckpt_path", "out_dir", "task_name", "tags",
-                "trainer.enable_progress_bar", "trainer.enable_model_summary")
 
 
 class Status(str, enum.Enum):
@@ -72,6 +73,8 @@ class Job:
     data: str | None = None
     status: Status = Status.MISSING
     error: str = ""
+    source: Job | None = None      # an evaluation row's job: the trained job it evaluates (nvs.sweep.eval_rows)
+    waiting: str = ""              # why such a job cannot be launched now (eval_rows.WAITING); '' when it can
 
     @property
     def kind(self) -> str:
@@ -108,6 +111,8 @@ def _is_neutral(override: str) -> bool:
 def row_overrides(study: Study, row: Row, extra: tuple[str, ...] = ()) -> list[str]:
     """The Hydra overrides that define a row's jobs (seed excluded), in the order they are applied."""
     config_extra = [o for o in extra if not is_hydra(o)]
+    if row.evaluates:  # nvs.evaluate's settings alone: the data and the config come with the checkpoint
+        return list(row.overrides)
     if row.reference:
         # Reference rows take the study's data settings (the same test pairs), but not the validation-only ones.
         shared = [o for o in list(study.overrides) + config_extra
@@ -121,69 +126,16 @@ def row_overrides(study: Study, row: Row, extra: tuple[str, ...] = ()) -> list[s
 
 def compose_job(kind: str, overrides: list[str]) -> DictConfig:
     """The job's config as Hydra composes it (hydra node excluded): conf/evaluate.yaml or conf/train.yaml."""
-    return compose("evaluate" if kind == "reference" else "train", overrides)
+    return compose("train" if kind == "train" else "evaluate", overrides)
 
 
 # -- identity and staleness ------------------------------------------------------------------------------------------
-def job_key(kind: str, overrides: list[str], seed: int) -> str:
-    """The job's stable name: a hash of its kind, its non-neutral overrides (in order) and its seed."""
-    blob = json.dumps({"kind": kind, "overrides": [o for o in overrides if not _is_neutral(o)], "seed": seed})
+def job_key(kind: str, overrides: list[str], seed: int, source: str | None = None) -> str:
+    """The job's stable name: a hash of its kind, its non-neutral overrides (in order), its seed and, for an
+    evaluation job, the key of the job it evaluates (``source``)."""
+    fields = {"kind": kind, "overrides": [o for o in overrides if not _is_neutral(o)], "seed": seed}
+    blob = json.dumps(fields if source is None else {**fields, "source": source})
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
-
-
-def _drop(container: dict, dotted: str) -> None:
-    *parents, last = dotted.split(".")
-    node = container
-    for p in parents:
-        node = node.get(p) if isinstance(node, dict) else None
-        if node is None:
-            return
-    if isinstance(node, dict):
-        node.pop(last, None)
-
-
-def config_fingerprint(cfg: DictConfig) -> dict:
-    """The composed config resolved, with placement-only keys removed (what sweep_job.json stores and checks)."""
-    cfg = cfg.copy()
-    if "paths" in cfg and "output_dir" in cfg.paths:
-        cfg.paths.output_dir = "<job dir>"  # a hydra: interpolation; its value is the job dir either way
-    if "out_dir" in cfg:
-        cfg.out_dir = "<job dir>"
-    container = OmegaConf.to_container(cfg, resolve=True)
-    for key in NEUTRAL_KEYS:
-        _drop(container, key)
-    return container
-
-
-def config_digest(fingerprint: dict) -> str:
-    blob = json.dumps(fingerprint, sort_keys=True, default=str).encode()
-    return hashlib.sha256(blob).hexdigest()[:16]
-
-
-def config_changes(old: Any, new: Any, prefix: str = "") -> list[str]:
-    """The dotted keys that make a result stale: changed or removed ones, and new components (see the module doc)."""
-    if not (isinstance(old, dict) and isinstance(new, dict)):
-        key = prefix.rstrip(".")  # SAME_BEHAVIOUR compared, not hashed: a leaf may be a list
-        return [] if old == new or any(r == (key, old, new) for r in SAME_BEHAVIOUR) else [key or "<config>"]
-    out = []
-    for k in sorted(set(old) | set(new), key=str):
-        if k not in new:
-            out.append(f"{prefix}{k}")
-        elif k not in old:
-            if _has_component(new[k]):
-                out.append(f"{prefix}{k}")
-        else:
-            out += config_changes(old[k], new[k], f"{prefix}{k}.")
-    return out
-
-
-def _has_component(node: Any) -> bool:
-    """Whether a config node is, or holds at any depth, a component (a mapping with ``_target_``)."""
-    if isinstance(node, dict):
-        return "_target_" in node or any(_has_component(v) for v in node.values())
-    if isinstance(node, list):
-        return any(_has_component(v) for v in node)
-    return False
 
 
 def read_json(path: Path) -> dict | None:
@@ -240,29 +192,38 @@ def plan(study: Study, root: str | Path, extra: tuple[str, ...] = (), exported: 
     done there (the same key and staleness rule) is done, read from there.
     """
     root = Path(root)
-    jobs = []
-    for row in study.rows:
+    by_row: dict[str, list[Job]] = {}
+    # evaluation rows last: their jobs are made from the jobs of the rows they evaluate
+    for row in sorted(study.rows, key=lambda r: r.evaluates is not None):
         overrides = row_overrides(study, row, extra)
-        seeds = row_seeds(study, row)
+        sources = by_row[row.evaluates] if row.evaluates else None
+        seeds = [j.seed for j in sources] if sources is not None else row_seeds(study, row)
         # One composition per row: setting the seed on a copy gives what composing with seed=<n> gives.
         composed = compose_job(row.kind, [*overrides, f"seed={seeds[0]}"]) if seeds else None
-        for seed in seeds:
+        by_row[row.name] = []
+        for i, seed in enumerate(seeds):
             cfg = composed.copy()
             cfg.seed = seed
+            src = sources[i] if sources is not None else None
             job = Job(study=study.name, row=row, seed=seed, dir=root / f"{row.run}_s{seed}", overrides=overrides,
-                      key=job_key(row.kind, overrides, seed), fingerprint=config_fingerprint(cfg),
-                      data=str(cfg.data.get("name") or row.data))
+                      key=job_key(row.kind, overrides, seed, src and src.key), fingerprint=config_fingerprint(cfg),
+                      data=str(cfg.data.get("name") or (src.data if src else row.data)), source=src)
+            if src is not None:
+                job.fingerprint[EVALUATES] = source_stamp(src.key, read_json(src.dir / JOB_RECORD))
+                job.waiting = waiting_reason(src.dir, src.status == Status.DONE)
             refresh(job)
             if job.status != Status.DONE and exported is not None:
                 there = Path(exported) / job.dir.name
                 if job_status(there, job.key, job.fingerprint)[0] == Status.DONE:
                     job.dir, job.status, job.error = there, Status.DONE, ""
-            jobs.append(job)
-    return jobs
+            by_row[row.name].append(job)
+    return [j for row in study.rows for j in by_row[row.name]]
 
 
 def to_launch(jobs: list[Job], retry_failed: bool = True, force: bool = False) -> list[Job]:
-    """The jobs a run must (re)launch: everything without a matching result (failed ones unless told not to)."""
+    """The jobs a run must (re)launch: everything without a matching result (failed ones unless told not to); never
+    an evaluation job that waits for its evaluated job's checkpoint."""
+    jobs = [j for j in jobs if not j.waiting]
     if force:
         return list(jobs)
     skip = {Status.DONE} | (set() if retry_failed else {Status.FAILED})

@@ -1,4 +1,5 @@
-"""Launching a row's jobs: one ``python -m nvs.train -m`` (or ``nvs.evaluate -m``) subprocess per row over its seeds.
+"""Launching a row's jobs: one ``python -m nvs.train -m`` (or ``nvs.evaluate -m``) subprocess per row over its seeds;
+an evaluation row's (``nvs.sweep.eval_rows``) one ``nvs.evaluate -m ckpt_path=...`` per job, each on its checkpoint.
 
 Each job lands in its fixed directory through ``hydra.sweep.dir=<runs>/<scale>`` and
 ``hydra.sweep.subdir=<run>_s${seed}``, whatever Hydra launcher is selected (basic, joblib, submitit), and loads the
@@ -25,6 +26,7 @@ from nvs.core.atomic import write_text
 from nvs.core.errors import UserError
 from nvs.run.overrides import hydra_value
 from nvs.sweep import recorder
+from nvs.sweep.eval_rows import tested_checkpoint
 from nvs.sweep.jobs import Job, Status, is_hydra, refresh, row_overrides
 from nvs.sweep.progress import Progress
 from nvs.sweep.recorder import FAILED, STDERR
@@ -61,10 +63,17 @@ class Launch:
 
 
 def multirun_command(study: Study, row: Row, seeds: list[int], root: Path, launch: Launch,
-                     extra: tuple[str, ...] = ()) -> list[str]:
-    """``python -m nvs.train -m ...`` (or nvs.evaluate) for one row over the given seeds."""
-    module = "nvs.evaluate" if row.reference else "nvs.train"
-    return [sys.executable, "-m", module, "-m", *row_overrides(study, row, extra),
+                     extra: tuple[str, ...] = (), source: Job | None = None) -> list[str]:
+    """``python -m nvs.train -m ...`` (or nvs.evaluate) for one row over the given seeds; for an evaluation row, one
+    seed and ``source`` (the job it evaluates), whose tested checkpoint it is given."""
+    head = []
+    if row.evaluates:
+        ckpt = tested_checkpoint(source.dir) if source is not None else None
+        if ckpt is None or len(seeds) != 1:
+            raise ValueError(f"{row.name}: an evaluation job runs alone, on its evaluated job's checkpoint")
+        head = [f"ckpt_path={hydra_value(str(ckpt.resolve()))}"]
+    module = "nvs.train" if row.kind == "train" else "nvs.evaluate"
+    return [sys.executable, "-m", module, "-m", *head, *row_overrides(study, row, extra),
             "seed=" + ",".join(str(s) for s in seeds),
             f"hydra.sweep.dir={hydra_value(str(root.resolve()))}", f"hydra.sweep.subdir={row.run}_s${{seed}}",
             f"+hydra.callbacks.nvs_sweep._target_={recorder.TARGET}",
@@ -153,12 +162,13 @@ def launch_row(study: Study, jobs: list[Job], root: Path, launch: Launch, extra:
                PYTHONPATH=os.pathsep.join([str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])]))
     pending = list(jobs)
     while pending:
-        cmd = multirun_command(study, row, [j.seed for j in pending], root, launch, extra)
-        print(f"[sweep] {row.name}: seeds {[j.seed for j in pending]}\n[sweep] $ {shlex.join(cmd)}", file=sys.stderr)
-        with progress.watch(pending) if progress else contextlib.nullcontext():
+        batch = pending[:1] if row.evaluates else pending  # an evaluation job has a checkpoint of its own
+        cmd = multirun_command(study, row, [j.seed for j in batch], root, launch, extra, batch[0].source)
+        print(f"[sweep] {row.name}: seeds {[j.seed for j in batch]}\n[sweep] $ {shlex.join(cmd)}", file=sys.stderr)
+        with progress.watch(batch) if progress else contextlib.nullcontext():
             rc, tail = run_streaming(cmd, env, keep_fds)
-        started = [j for j in pending if (j.dir / STDERR).exists() or (j.dir / "metrics.json").exists()]
-        for j in pending:
+        started = [j for j in batch if (j.dir / STDERR).exists() or (j.dir / "metrics.json").exists()]
+        for j in batch:
             refresh(j)
             if j in started and j.status in (Status.INCOMPLETE, Status.MISSING):
                 # Died without an exception Hydra could catch (sys.exit, a killed worker): its own stderr says why.
@@ -167,10 +177,10 @@ def launch_row(study: Study, jobs: list[Job], root: Path, launch: Launch, extra:
                       or f"no result (multirun exit code {rc}{'; killed by a signal' if rc < 0 else ''})")
         if not started:
             # Nothing ran (the multirun failed before its first job, e.g. a config error): all of them failed.
-            for j in pending:
+            for j in batch:
                 _fail(j, last_error_line(tail) or f"multirun exit code {rc}")
         if progress:
-            progress.settle(pending)
+            progress.settle(batch)
         # Jobs the multirun never reached (an earlier job ended the process) get their own turn.
-        pending = [j for j in pending if j not in started and j.status != Status.FAILED]
+        pending = [j for j in pending if j not in batch or (j not in started and j.status != Status.FAILED)]
     return jobs

@@ -3,8 +3,13 @@
 The schema is the dataclasses ``StudyFile`` and ``Row``. ``load_study`` builds them from the YAML mapping through
 ``nvs.sweep.schema``, so a key that no field declares, a value of the wrong type or a missing required key is one
 ``UserError`` naming the file, the line and the key (``sweeps/x.yaml:14: rows[2]: unknown key 'colour'; expected one
-of [...]``). The checks a type cannot express (row names that name directories, no sweep overrides, reference rows)
-follow in ``_check_row``.
+of [...]``). The checks a type cannot express (row names that name directories, no sweep overrides, reference rows,
+evaluation rows) follow in ``_check_row`` and ``_check_evaluates``.
+
+Three kinds of row (``Row.kind``): a trained row ("train": ``experiment`` + ``overrides``, run by ``nvs.train``), a
+reference row ("reference": ``reference`` + ``data``, run by ``nvs.evaluate`` without a checkpoint) and an
+evaluation row ("evaluate": ``evaluates: <a trained row>`` + ``overrides`` for ``nvs.evaluate``, run on each of that
+row's trained jobs' tested checkpoint, e.g. ``route=fit``; ``nvs.sweep.eval_rows``).
 """
 
 from __future__ import annotations
@@ -32,7 +37,8 @@ _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
 @dataclass(frozen=True)
 class Row:
-    """One table row: a trained configuration (experiment + overrides) or a reference model (no training)."""
+    """One table row: a trained configuration (experiment + overrides), a reference model (no training) or an
+    evaluation of another row's trained jobs (``evaluates``: its checkpoints through ``nvs.evaluate <overrides>``)."""
 
     name: str
     label: str = ""                # table text; default: name
@@ -51,6 +57,10 @@ class Row:
     # the paper's full model): its orderings against the paper are also decided with this row in that row's place
     # (nvs.sweep.paper_order), never against that row itself.
     stands_for: str | None = None
+    # An evaluation row: the name of a trained row of the same study whose jobs' tested checkpoints are evaluated by
+    # nvs.evaluate with this row's overrides (e.g. [route=fit]), one job per seed of that row, on its data. Such a
+    # row has no experiment, reference, data, seeds, paper numbers or stands_for of its own.
+    evaluates: str | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "label", self.label or self.name)
@@ -58,7 +68,7 @@ class Row:
 
     @property
     def kind(self) -> str:
-        return "reference" if self.reference else "train"
+        return "evaluate" if self.evaluates else "reference" if self.reference else "train"
 
 
 @dataclass(frozen=True)
@@ -151,6 +161,39 @@ def _check_row(row: Row, where: str) -> None:
             raise UserError(f"{where}: seeds must be distinct, non-negative and at least one, got {own}")
 
 
+# What an evaluation row takes from the row it evaluates, not from its own keys.
+_NOT_FOR_EVALUATION = {"experiment": "its checkpoints carry their config", "reference": "it evaluates trained jobs",
+                       "data": "its data is the evaluated row's", "seeds": "its seeds are the evaluated row's",
+                       "paper": "it has no paper numbers", "stands_for": "it evaluates a row, it stands for none",
+                       "oracle": "the evaluated row says whether ground truth is used"}
+
+
+def _check_evaluates(rows: tuple[Row, ...], source: Source) -> None:
+    """An evaluation row ('evaluates:') names a trained row of the study and sets none of the keys that row owns; its
+    overrides are nvs.evaluate's, and the checkpoint is the runner's to give."""
+    by_name = {row.name: row for row in rows}
+    trained = [r.name for r in rows if r.kind == "train"]
+    for i, row in enumerate(rows):
+        if row.evaluates is None:
+            continue
+        for key, why in _NOT_FOR_EVALUATION.items():
+            value = getattr(row, key)
+            if value not in (None, {}, False):
+                raise UserError(f"{source.where(('rows', i, key))}: an evaluation row (evaluates: {row.evaluates}) "
+                                f"has no '{key}' ({why})")
+        for j, o in enumerate(row.overrides):
+            if o.lstrip("+~").split("=", 1)[0] == "ckpt_path":
+                raise UserError(f"{source.where(('rows', i, 'overrides', j))}: '{o}': the checkpoint is the "
+                                f"evaluated job's ('{row.evaluates}'), given by the runner")
+        where = source.where(("rows", i, "evaluates"))
+        target = by_name.get(row.evaluates)
+        if target is None or target.kind != "train":
+            what = ("is not a row of the study" if target is None else
+                    f"is {'an evaluation' if target.kind == 'evaluate' else 'a reference'} row, not a trained one")
+            raise UserError(f"{where}: '{row.evaluates}' {what}; an evaluation row evaluates one of: "
+                            f"{', '.join(trained) or 'none'}")
+
+
 def _check_stands_for(rows: tuple[Row, ...], source: Source) -> None:
     """A variant ('stands_for:') names another trained row with paper numbers, which is no variant itself, and has no
     paper numbers of its own (one row's numbers, one place in the paper's orderings)."""
@@ -167,8 +210,8 @@ def _check_stands_for(rows: tuple[Row, ...], source: Source) -> None:
         if target.stands_for is not None:
             raise UserError(f"{where}: '{target.name}' stands for '{target.stands_for}' itself; name that row "
                             "(no chains)")
-        if target.reference is not None or not target.paper:
-            named = [r.name for r in rows if r.reference is None and r.paper]
+        if target.kind != "train" or not target.paper:
+            named = [r.name for r in rows if r.kind == "train" and r.paper]
             raise UserError(f"{where}: '{target.name}' is not a trained row with paper numbers; a variant stands "
                             f"for one of: {', '.join(named) or 'none'}")
         if row.paper:
@@ -183,7 +226,10 @@ def seed_list(seeds: int | tuple[int, ...]) -> list[int]:
 
 def row_seeds(study: Study, row: Row) -> tuple[int, ...]:
     """The seeds a row runs: the study's; the row's own 'seeds:' unless --seeds was given; one for a reference row
-    (a reference model has nothing to train: one evaluation stands for every seed)."""
+    (a reference model has nothing to train: one evaluation stands for every seed); an evaluation row's are those
+    of the row it evaluates."""
+    if row.evaluates:
+        return row_seeds(study, next(r for r in study.rows if r.name == row.evaluates))
     if row.reference:
         return study.seeds[:1]
     if row.seeds is not None and not study.seeds_from_command_line:
@@ -209,6 +255,7 @@ def load_study(path: str | Path, seeds: list[int] | None = None, size: int | Non
     bad = [m for m in metrics if m not in METRICS]
     if bad:
         raise UserError(f"{source.where(('metrics',))}: unknown metric(s) {bad}; expected some of {list(METRICS)}")
+    _check_evaluates(spec.rows, source)  # first: an evaluation row's own keys are named before any other check
     names, runs = set(), set()
     for i, row in enumerate(spec.rows):
         where = source.where(("rows", i))
@@ -219,7 +266,7 @@ def load_study(path: str | Path, seeds: list[int] | None = None, size: int | Non
         runs.add(row.run)
     if not spec.rows:
         raise UserError(f"{source.where(('rows',))}: 'rows' is empty")
-    trained = [row.name for row in spec.rows if row.reference is None]
+    trained = [row.name for row in spec.rows if row.kind == "train"]
     _check_stands_for(spec.rows, source)
     for i, base in enumerate(spec.against):
         if base not in trained:

@@ -12,6 +12,7 @@ from nvs.core.provenance import git_sha, utc_now
 from nvs.sweep.bootstrap import Gap
 from nvs.sweep.collect import SKIP_LEVELS, collect, render_csv, summarize
 from nvs.sweep.convergence_report import convergence_tables, curves_png
+from nvs.sweep.eval_table import Columns, evaluation_lines
 from nvs.sweep.goal_lines import against_base, goals, md_cell, test_sets_cell
 from nvs.sweep.jobs import Job
 from nvs.sweep.paper_order import decide, ordering_lines
@@ -105,7 +106,7 @@ def render(study: Study, records: list[dict], provenance: dict) -> tuple[str, di
 
 def precision_cell(records: list[dict]) -> str:
     """The trained jobs' precision: one value, or each row's where they differ (never mixed unmarked)."""
-    trained = [r for r in records if r["status"] == "done" and r["kind"] != "reference"]
+    trained = [r for r in records if r["status"] == "done" and r["kind"] == "train"]
     values = sorted({str(r.get("precision")) for r in trained})
     if len(values) <= 1:
         return f"{values[0]} (every trained job)" if values else "—"
@@ -181,8 +182,13 @@ def _skipped_cell(r: dict) -> str:
 
 def _cost_tables(groups: dict[str | None, list[dict]], present: list[str]) -> list[str]:
     """Cost against error per dataset: eval forward time, speed-up over the first trained row, median train step
-    time, the metrics, L1 relative to the best non-oracle row, warps skipped, and the pick (see ``nvs.sweep.pick``)."""
+    time, the metrics, L1 relative to the best non-oracle row, warps skipped, the routes and timed sizes where some
+    row has them (``nvs.sweep.eval_table``), and the pick (see ``nvs.sweep.pick``); under each table the pick and the
+    evaluation rows against the rows they evaluate."""
     pct = f"{100 * PICK_L1_TOLERANCE:g}%"
+    every = [r for grows in groups.values() for r in grows]
+    columns = Columns.of(every)
+    legend = columns.explanation(any(r["kind"] == "evaluate" for r in every))
     lines = [f"Eval is the forward pass alone per test image (batch of the test loader, metrics excluded); ×: how many "
              "times faster than the table's first trained row; train is the median time of one training step "
              "(forward, backward, optimizer). ΔL1 is relative to the best L1 among the trained rows that use no "
@@ -192,10 +198,10 @@ def _cost_tables(groups: dict[str | None, list[dict]], present: list[str]) -> li
              f"bootstrap over seeds and test groups) is at most {pct} of the best's L1 (the point estimate where a "
              "row has no per-image results). Warps skipped: the fraction of (test sample, skip level) warps an "
              "adaptive model skipped, then "
-             "per level conv0/conv2/conv3/conv4 in %.", ""]
+             "per level conv0/conv2/conv3/conv4 in %." + (f" {legend}" if legend else ""), ""]
     header = ["Configuration", "n", "Eval (ms/img)", "×", "Train (ms/step)",
-              *[f"{SPECS[m].label} {SPECS[m].arrow}" for m in present], "ΔL1", "Warps skipped", "Pick",
-              "Status"]
+              *[f"{SPECS[m].label} {SPECS[m].arrow}" for m in present], "ΔL1", "Warps skipped",
+              *columns.header(), "Pick", "Status"]
     for group, grows in groups.items():
         if group is not None:
             lines += [f"## {group}", ""]
@@ -209,9 +215,10 @@ def _cost_tables(groups: dict[str | None, list[dict]], present: list[str]) -> li
                      _fmt(*r["train_step_ms"], 0) if r["kind"] == "train" else "—"]
             cells += [_fmt(*r[m], SPECS[m].decimals) for m in present]
             cells += [f"{100 * (r['l1'][0] / best['l1'][0] - 1):+.1f}%" if best and r["l1"][0] is not None else "—",
-                      _skipped_cell(r), "★" if r is pick else "", _status(r)]
+                      _skipped_cell(r), *columns.cells(r), "★" if r is pick else "", _status(r)]
             lines.append("| " + " | ".join(cells) + " |")
         lines += ["", _pick_sentence(best, pick, base, pct, gap), ""]
+        lines += evaluation_lines(grows, columns)
     return lines
 
 
