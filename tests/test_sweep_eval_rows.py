@@ -288,6 +288,34 @@ def test_one_sweep_trains_first_then_evaluates_and_tabulates(tmp_path, monkeypat
     assert launched == []
 
 
+def test_rows_that_leave_out_the_trained_row_launch_only_the_evaluations_whose_checkpoint_is_here(
+        tmp_path, monkeypatch, capsys):
+    study = _study(tmp_path, rows=STUDY["rows"][:2])
+    runs, results = tmp_path / "runs", tmp_path / "results"
+    root = runs / study.scale
+    _train(_jobs(study, root)[("full", 0)], root)  # seed 0 trained here, seed 1 not
+    launched = []
+
+    def fake_launch(study, jobs, root, launch, extra=(), keep_fds=(), progress=None):
+        for j in jobs:
+            launched.append((j.row.name, j.seed))
+            _evaluate(j)
+            j.status = Status.DONE
+        return jobs
+
+    monkeypatch.setattr(sweep_main, "launch_row", fake_launch)
+    monkeypatch.setattr(sweep_main, "check_precision", lambda *a, **k: None)
+    monkeypatch.setattr(sweep_main, "check_launch", lambda *a, **k: None)
+    assert sweep.run([str(study.path), "--runs", str(runs), "--results", str(results), "--rows", "routed",
+                      "--dry-run"]) == 0
+    err = capsys.readouterr().err
+    assert "trained first in this run" not in err
+    assert re.search(r"routed +s1 .*\(waiting: needs .*full_s1's checkpoint", err), err
+    # 1: seed 1 (its trained job and its evaluation) is still missing
+    assert sweep.run([str(study.path), "--runs", str(runs), "--results", str(results), "--rows", "routed"]) == 1
+    assert launched == [("routed", 0)]
+
+
 def test_an_evaluation_whose_trained_job_failed_is_left_waiting_not_failed(tmp_path, monkeypatch, capsys):
     study = _study(tmp_path, rows=STUDY["rows"][:2], seeds=[0])
     runs, results = tmp_path / "runs", tmp_path / "results"

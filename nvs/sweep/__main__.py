@@ -165,7 +165,10 @@ def run(argv: list[str] | None = None) -> int:
     if launching:
         launching += _after_sources(jobs, launching, not args.skip_failed, args.force)
     if args.rows is not None:
-        launching = [j for j in launching if j.row.name in _selected_rows(study, args.rows)]
+        chosen = _selected_rows(study, args.rows)
+        launching = [j for j in launching if j.row.name in chosen]
+        ids = {id(j) for j in launching}  # an evaluation whose trained job --rows leaves out keeps waiting
+        launching = [j for j in launching if not j.waiting or id(j.source) in ids]
     _print_plan(jobs, launching)
     if launching and not args.force:  # never continue a study on another render of its data
         check_launch([j for j in jobs if j.status == Status.DONE], [j for j in launching if j.kind != "evaluate"])
