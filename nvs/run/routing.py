@@ -78,6 +78,10 @@ def fit(module: NVSModule, datamodule: NVSDataModule, ckpt: dict, settings: Cali
                                settings.candidates)
     except ValueError as err:
         raise UserError(f"route=fit with calibration.tolerance={settings.tolerance}: {err}") from None
+    if not stats["margin_met"]:
+        print(f"route=fit: no rule that routes a pair elsewhere beats the full decoder's validation L1 "
+              f"({stats['l1_full']:.5f}) by the margin calibration.tolerance={settings.tolerance:g}; every pair runs "
+              "the full decoder", flush=True)
     return {"kind": KIND, "version": VERSION, "rule": rule.as_dict(), "tolerance": settings.tolerance,
             "candidates": settings.candidates, "costs": costs,
             "checkpoint": {"path": str(ckpt.get("path")), "weights_sha256": weights_id(ckpt)}, "validation": stats}
