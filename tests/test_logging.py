@@ -91,7 +91,7 @@ def _pairs_loader(n: int, batch_size: int):
 @pytest.mark.parametrize("limit, pairs", [(1.0, 7), (2, 6)])
 def test_the_test_bar_counts_pairs_not_batches(bar, limit, pairs, tmp_path, capsys, monkeypatch):
     silence_known_noise()
-    monkeypatch.setattr(StepProgressBar, "_terminal", staticmethod(lambda: True))  # its test bar is a terminal's
+    monkeypatch.setattr(PairTestBar, "_terminal", staticmethod(lambda: True))  # the test bar is a terminal's
     trainer = L.Trainer(callbacks=[bar()], logger=False, enable_model_summary=False, limit_test_batches=limit,
                         default_root_dir=tmp_path)
     trainer.test(_TinyTest(), _pairs_loader(7, 3), verbose=False)
@@ -100,6 +100,19 @@ def test_the_test_bar_counts_pairs_not_batches(bar, limit, pairs, tmp_path, caps
     assert counts and {int(total) for _, total in counts} == {pairs}  # the total is the pairs, not 3 (2) batches
     assert [int(n) for n, _ in counts][-1] == pairs and {3, 6} & {int(n) for n, _ in counts}  # one batch: 3 pairs
     assert "Testing" not in out and "pairs/s" in out  # not Lightning's bar of batches
+
+
+@pytest.mark.parametrize("bar, lines", [(PairTestBar, True), (StepProgressBar, False)])
+def test_in_a_log_file_the_test_bar_is_plain_lines_or_nothing(bar, lines, tmp_path, capsys, monkeypatch):
+    silence_known_noise()
+    monkeypatch.setattr(PairTestBar, "_terminal", staticmethod(lambda: False))
+    monkeypatch.setattr(PairTestBar, "LINES", 3)  # a line per third of the 21 pairs: at 9, 18 and 21
+    trainer = L.Trainer(callbacks=[bar()], logger=False, enable_model_summary=False, default_root_dir=tmp_path)
+    trainer.test(_TinyTest(), _pairs_loader(21, 3), verbose=False)
+    out = capsys.readouterr().out
+    assert "\r" not in out and "\x1b[" not in out
+    counts = re.findall(r"^test pairs: [^\n]*?\| (\d+)/21 \[", out, flags=re.M)
+    assert counts == (["9", "18", "21"] if lines else []), out
 
 
 def test_silence_drops_exactly_the_listed_noise(caplog):

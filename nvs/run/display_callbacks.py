@@ -44,13 +44,29 @@ def _batch_pairs(batch: Any) -> int:
 
 
 class PairTestBar(TQDMProgressBar):
-    """Lightning's tqdm bar whose test bar counts test pairs, not batches (a batch holds eval_batch_size pairs)."""
+    """Lightning's tqdm bar whose test bar counts test pairs, not batches (a batch holds eval_batch_size pairs).
+
+    When stdout is not a terminal (a log file) the test bar is one line per tenth of the pairs (the same text, no
+    carriage returns)."""
+
+    LINES = 10  # lines of a test's (or a run's) progress in a log file
+    TEST_LINES = True  # False: no test progress at all in a log file
+
+    def __init__(self, *args: Any, **kwargs: Any):
+        super().__init__(*args, **kwargs)
+        self._test_lines: dict | None = None  # the test's line mode state, set at each test loader's first batch
+
+    @staticmethod
+    def _terminal() -> bool:
+        return sys.stdout.isatty()
 
     @property
     def test_description(self) -> str:
         return "test pairs"
 
     def init_test_tqdm(self) -> Tqdm:
+        if not self._terminal():
+            return Tqdm(disable=True)  # lines instead (on_test_batch_end), where TEST_LINES
         # Lightning's test bar, named and paced in pairs (the rate in pairs per second)
         return Tqdm(desc=self.test_description, unit=" pairs", position=2 * self.process_position,
                     disable=self.is_disabled, leave=True, dynamic_ncols=True, file=sys.stdout,
@@ -60,6 +76,10 @@ class PairTestBar(TQDMProgressBar):
                             dataloader_idx: int = 0) -> None:
         if not self.has_dataloader_changed(dataloader_idx):
             return
+        if not self._terminal():
+            self._test_lines = None if self.is_disabled or not self.TEST_LINES else {
+                "t0": time.perf_counter(), "n": 0, "printed": 0, "total": _test_pairs(trainer, dataloader_idx)}
+            return
         bar = self.test_progress_bar
         bar.reset(total=_test_pairs(trainer, dataloader_idx))
         bar.initial = 0
@@ -68,6 +88,15 @@ class PairTestBar(TQDMProgressBar):
 
     def on_test_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
                           batch_idx: int, dataloader_idx: int = 0) -> None:
+        state = self._test_lines
+        if state is not None and not self._terminal():
+            state["n"] += _batch_pairs(batch)
+            n, total = state["n"], state["total"]
+            if n - state["printed"] >= max(1, (total or 1000) // self.LINES) or n == total:
+                state["printed"] = n
+                print(Tqdm.format_meter(n, total, time.perf_counter() - state["t0"], prefix=self.test_description,
+                                        unit=" pairs"), flush=True)
+            return
         bar = self.test_progress_bar
         if bar is None or bar.disable:
             return
@@ -88,21 +117,14 @@ class StepProgressBar(PairTestBar):
     escapes into the file.
     """
 
-    LINES = 10  # lines of a run's progress in a log file
+    TEST_LINES = False  # a run's test in a log file: its metrics line is enough
 
     def __init__(self, *args: Any, **kwargs: Any):
         super().__init__(*args, **kwargs)
         self._lines: dict | None = None  # the line mode's state, set at the start of training
 
-    @staticmethod
-    def _terminal() -> bool:
-        return sys.stdout.isatty()
-
     def init_sanity_tqdm(self) -> Tqdm:
         return super().init_sanity_tqdm() if self._terminal() else Tqdm(disable=True)
-
-    def init_test_tqdm(self) -> Tqdm:
-        return super().init_test_tqdm() if self._terminal() else Tqdm(disable=True)
 
     def init_train_tqdm(self) -> Tqdm:
         return super().init_train_tqdm() if self._terminal() else Tqdm(disable=True)
