@@ -7,6 +7,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+from unittest import mock
 
 import numpy as np
 import pytest
@@ -125,6 +126,12 @@ def test_only_the_pairs_routed_full_run_the_pixel_decoder(tmp_path):
     with torch.no_grad():
         assert router(batch)["route"].tolist() == [COPY] * 4
     assert decoder == [] and encoder == []
+    # a rule that never warps (the all-full fit of a margin no rule meets) skips the warp: the network's own output
+    router.rule = RouteRule()
+    with torch.no_grad(), mock.patch("nvs.models.route.warp_source", side_effect=AssertionError("warped")):
+        out = router(batch)
+    assert out["route"].tolist() == [FULL] * 4 and torch.isnan(out["route_features"]["disocclusion"]).all()
+    torch.testing.assert_close(out["rgb"], reference, atol=1e-5, rtol=0)
 
 
 def test_costs_are_counted_flops_with_copy_free_and_full_whole(tmp_path):

@@ -95,7 +95,8 @@ def warp_source(src: torch.Tensor, depth: torch.Tensor, K: torch.Tensor,
 class RoutedNet(nn.Module):
     """A ``DepthBeforePixels`` network (``NVSNet``) behind a ``RouteRule``: forward(batch) -> outputs with ``rgb``,
     ``rgb_scales`` (the final one only), ``depth`` (NaN for copied pairs: never predicted), ``route`` (B,) indices
-    into ``ROUTES`` and ``route_features`` {FEATURES: (B,)} (NaN where not computed).
+    into ``ROUTES`` and ``route_features`` {FEATURES: (B,)} (NaN where not computed: the warp's features of copied
+    pairs, and of every pair under a rule that never warps, which skips the warp).
 
     ``forward`` runs the encoder for the pairs not copied only; ``encode`` / ``render`` (the viewer's split) encode
     every source. The parameters are the network's: a checkpoint's weights load into ``net``.
@@ -134,11 +135,14 @@ class RoutedNet(nn.Module):
             sub = take(batch, rest, B)
             encoded = encode(rest)
             z_t, depth = self.net.predict_depth(encoded, sub)
-            warped, f = warp_source(src[rest], depth, sub["K"], sub["T_tgt_src"])
-            for k, v in f.items():
-                feats[k][rest] = v.float()
-            warp = self.rule.warps(f["disocclusion"], f["disp_mean_px"])
-            rgb[rest[warp]] = warped[warp].float()
+            if self.rule.warp_disocclusion is None or self.rule.warp_displacement_px is None:
+                warp = torch.zeros(rest.numel(), dtype=torch.bool, device=src.device)  # never: no warp to measure
+            else:
+                warped, f = warp_source(src[rest], depth, sub["K"], sub["T_tgt_src"])
+                for k, v in f.items():
+                    feats[k][rest] = v.float()
+                warp = self.rule.warps(f["disocclusion"], f["disp_mean_px"])
+                rgb[rest[warp]] = warped[warp].float()
             route[rest[warp]] = WARP
             full = (~warp).nonzero()[:, 0]
             if full.numel():
