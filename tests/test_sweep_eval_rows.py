@@ -369,8 +369,11 @@ def test_the_route_studys_trained_rows_are_the_committed_comparison_jobs(tmp_pat
     study = sweep.load_study(REPO / "sweeps" / "route.yaml")
     assert study.table == "cost" and study.metrics == ("l1", "ssim", "ssim_paper")
     evaluations = {r.name: r for r in study.rows if r.kind == "evaluate"}
-    assert set(evaluations) == {"route_normfix_chairs", "route_chairs", "route_normfix_drive", "route_drive"}
-    assert all(r.overrides == ("route=fit", "time_sizes=[64,256]") for r in evaluations.values())
+    assert set(evaluations) == {"route_normfix_chairs", "route_chairs", "route_normfix_drive", "route_drive",
+                                "route_margin_normfix_chairs", "route_margin_normfix_drive"}
+    for name, r in evaluations.items():  # the default rule, and the norms-fixed networks' rule with a margin
+        margin = ("calibration.tolerance=-0.05",) if "margin" in name else ()
+        assert r.overrides == ("route=fit", *margin, "time_sizes=[64,256]"), name
     for name in ("comparison_objects", "comparison_drive"):
         other = sweep.load_study(REPO / "sweeps" / f"{name}.yaml")
         assert other.overrides == study.overrides and (other.size, other.steps) == (study.size, study.steps)
@@ -409,3 +412,26 @@ def test_without_an_interval_the_margin_is_read_on_the_shared_pairs_not_the_rows
     assert line.endswith("; within 1% of its L1 (0.0010) by the point estimate."), line
     far = {**r, "dirs": [job("far", [0.2] * 3)]}
     assert evaluation_line(far, src, Columns()).endswith("; not shown within 1% of its L1 (0.0010).")
+
+
+def test_an_evaluation_that_changes_no_test_pair_is_identical_without_a_bootstrap(tmp_path, monkeypatch):
+    from nvs.sweep import eval_table
+    from nvs.sweep.eval_table import Columns, evaluation_line
+
+    def job(name, l1):
+        d = tmp_path / name
+        d.mkdir()
+        lines = ["index,id_src,id_tgt,l1"] + [f"{k},m{k}_0_0s,m{k}_0_0,{x}" for k, x in enumerate(l1)]
+        (d / "test_per_image.csv").write_text("\n".join(lines) + "\n")
+        return d
+
+    # a route that sends every pair to the full decoder: the evaluation's images are the trained row's, bit for bit
+    monkeypatch.setattr(eval_table, "paired_by_seed", lambda *a, **k: pytest.fail("bootstrapped a zero difference"))
+    l1 = [0.1, 0.2, 0.3, 0.4]
+    src = {"row": "full", "label": "Full", "l1": (0.25, None), "seeds": [1, 2],
+           "dirs": [job("full1", l1), job("full2", l1)]}
+    r = {"row": "routed", "label": "Routed", "l1": (0.25, None), "overrides": ("route=fit",), "seeds": [1, 2],
+         "dirs": [job("routed1", l1), job("routed2", l1)], "eval_256px_speedup": (0.98, None)}
+    line = evaluation_line(r, src, Columns(sizes=(256,)))
+    assert line == ("- Routed (`route=fit`) against Full: the same L1 on every test pair (8 pairs over 2 seeds): "
+                    "**identical**; eval 256² 0.98× slower than the network alone."), line

@@ -122,8 +122,13 @@ def evaluation_line(r: dict, src: dict, columns: Columns, tolerance: float = PIC
     settings = " ".join(r.get("overrides") or ())
     head = f"- {md_cell(r['label'])}" + (f" (`{settings}`)" if settings else "") + f" against {md_cell(src['label'])}"
     diffs = seed_differences(r, src)
-    gap = paired_by_seed(diffs)
     pct, margin = f"{100 * tolerance:g}%", tolerance * src["l1"][0]
+    pairs = sum(len(d) for d in diffs)
+    if pairs and all(v["l1"] == 0.0 for d in diffs for v in d.values()):  # nothing to bootstrap: the same images
+        seeds = f"{len(diffs)} seed" + ("s" if len(diffs) != 1 else "")
+        same = f"the same L1 on every test pair ({pairs} pairs over {seeds}): **identical**"
+        return f"{head}: {same}{_speed(r, columns)}."
+    gap = paired_by_seed(diffs)
     if gap.diff is None:
         text = f"{head}: L1 {r['l1'][0]:.4f} against {src['l1'][0]:.4f}, no interval ({gap.why})"
     else:
@@ -139,10 +144,14 @@ def evaluation_line(r: dict, src: dict, columns: Columns, tolerance: float = PIC
         within, how = not decided.near and decided.hi <= margin, "by the interval's upper end"
     text += (f"; within {pct} of its L1 ({margin:.4f}) {how}" if within
              else f"; not shown within {pct} of its L1 ({margin:.4f})")
+    return text + _speed(r, columns) + "."
+
+
+def _speed(r: dict, columns: Columns) -> str:
+    """'; eval 256² 1.62× faster than the network alone' at the largest timed size; '' where none was timed."""
     for size in reversed(columns.sizes):
         speedup = r.get(size_columns(size)[1], (None,))[0]
         if speedup is not None:
-            text += f"; eval {size}² {speedup:.2f}× " + ("faster" if speedup >= 1 else "slower") + \
-                " than the network alone"
-            break
-    return text + "."
+            how = "faster" if speedup >= 1 else "slower"
+            return f"; eval {size}² {speedup:.2f}× {how} than the network alone"
+    return ""
