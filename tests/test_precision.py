@@ -75,20 +75,52 @@ def test_an_unknown_precision_is_a_value_error_naming_the_choices():
 def test_the_probe_runs_once_per_machine_and_is_cached(tmp_path, monkeypatch):
     monkeypatch.setenv("NVS_CACHE_DIR", str(tmp_path))
     calls = []
-    real = precision._time_mode
+    real = precision._time_modes
 
-    def counted(mode, *args):
-        calls.append(mode)
-        return real(mode, *args)
+    def counted(*args):
+        calls.append(args)
+        return real(*args)
 
-    monkeypatch.setattr(precision, "_time_mode", counted)
+    monkeypatch.setattr(precision, "_time_modes", counted)
     first = precision.probe()
-    assert sorted(calls) == sorted(precision.MODES) and all(v > 0 for v in first.values())
-    assert precision.probe() == first and len(calls) == 3  # from the cache
+    assert set(first) == set(precision.MODES) and all(v > 0 for v in first.values())
+    assert precision.probe() == first and len(calls) == 1  # from the cache
     cache = json.loads((tmp_path / "precision.json").read_text())
-    assert list(cache) == [precision.machine_key()] and cache[precision.machine_key()]["ms"] == first
+    entry = cache[precision.machine_key()]
+    assert list(cache) == [precision.machine_key()] and entry["ms"] == first
+    assert entry["rounds"] == precision._PROBE_ROUNDS and "v2" in precision.machine_key()
     precision.probe(refresh=True)
-    assert len(calls) == 6
+    assert len(calls) == 2
+
+
+def test_the_probe_interleaves_the_modes_keeps_each_ones_fastest_round_and_drops_a_far_slower_mode(monkeypatch):
+    """A burst of load in one round costs that round only; an emulated bf16 (10x) is timed in two rounds only."""
+    order = []
+    cost = {"fp32": [9.0, 5.0, 30.0, 5.5, 6.0, 5.0], "cl": [9.0, 4.5, 30.0, 4.8, 4.6, 4.7],
+            "bf16_cl": [90.0, 50.0, 300.0, 50.0, 50.0, 50.0]}
+    clock = {"t": 0.0}
+
+    def fake_perf_counter():
+        return clock["t"]
+
+    real_conv = torch.nn.Conv2d.forward
+
+    def timed_conv(self, x):
+        mode = ("bf16_cl" if torch.is_autocast_enabled("cpu") else
+                "cl" if x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous() else "fp32")
+        if not order or order[-1] != mode:
+            order.append(mode)
+            clock["t"] += cost[mode][sum(1 for m in order if m == mode) - 1] / 1000
+        return real_conv(self, x)
+
+    monkeypatch.setattr(precision.time, "perf_counter", fake_perf_counter)
+    monkeypatch.setattr(torch.nn.Conv2d, "forward", timed_conv)
+    convs = [torch.nn.Conv2d(4, 4, 3, padding=1)]
+    inputs = [torch.randn(1, 4, 6, 6)]
+    ms = precision._time_modes(convs, inputs, 5)
+    assert order[:9] == ["fp32", "cl", "bf16_cl"] * 3  # the warm-up round, then two timed rounds of every mode
+    assert order.count("bf16_cl") == 3 and order[9:] == ["fp32", "cl"] * 3
+    assert ms == pytest.approx({"fp32": 5.0, "cl": 4.5, "bf16_cl": 50.0})
 
 
 def test_the_machine_key_tells_apart_cpus_that_share_a_model_name(monkeypatch):
