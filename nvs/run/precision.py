@@ -36,10 +36,12 @@ _ALIASES = {"32": "32-true", "64": "64-true", "16": "16-mixed", "bf16": "bf16-mi
 # smaller convs (batch 4, 32-128 channels at 32^2-8^2, ~5 ms a mode) one mode after the other: on a Zen 4 with native
 # bf16 one such probe measured fp32 fastest (bf16_cl 1.28x) where the 64^2 training step runs 1.54x faster in
 # bf16_cl, and the cache kept that pick. These shapes (~25 ms a mode) put bf16_cl at 0.59-0.62x fp32 there, against
-# 0.65x for the training step and 0.79x for the novel view.
+# 0.65x for the training step and 0.79x for the novel view (readings of nvs.bench and three probes, 2026-12-04).
 _PROBE_CONVS = ((32, 64), (64, 32), (128, 16), (256, 8))
 _PROBE_BATCH = 4
 _PROBE_ROUNDS = 5
+# After this many rounds a mode this much slower than the fastest is not timed again (an emulated bf16: ~10x).
+_DROP_AFTER_ROUNDS, _DROP_SLOWDOWN = 2, 4.0
 # An explicit bf16 at least this much slower than the fastest mode is worth a warning.
 WARN_SLOWDOWN = 1.5
 PROBE_VERSION = 2
@@ -118,8 +120,8 @@ def cache_path() -> Path:
 def _time_modes(convs: list[torch.nn.Module], inputs: list[torch.Tensor], rounds: int) -> dict[str, float]:
     """ms of forward + backward of every probe conv, per mode: the fastest of ``rounds`` rounds that each time every
     mode once (interleaved, so a burst of load from elsewhere falls on all modes, and the minimum is the run that the
-    load spared). A mode over 4x the fastest after two rounds is not timed again: more rounds would not change the
-    pick, and an emulated bf16 costs ~10x."""
+    load spared). A mode over ``_DROP_SLOWDOWN`` x the fastest after ``_DROP_AFTER_ROUNDS`` rounds is not timed again:
+    more rounds would not change the pick."""
     prepared = {}
     for mode, (_, channels_last) in MODES.items():
         fmt = torch.channels_last if channels_last else torch.contiguous_format
@@ -139,11 +141,11 @@ def _time_modes(convs: list[torch.nn.Module], inputs: list[torch.Tensor], rounds
         once(mode)
     best = {mode: float("inf") for mode in MODES}
     timed = list(MODES)
-    for r in range(rounds):
+    for done in range(1, rounds + 1):
         for mode in timed:
             best[mode] = min(best[mode], once(mode))
-        if r == 1:
-            timed = [m for m in MODES if best[m] <= 4 * min(best.values())]
+        if done == _DROP_AFTER_ROUNDS:
+            timed = [m for m in MODES if best[m] <= _DROP_SLOWDOWN * min(best.values())]
     return best
 
 
