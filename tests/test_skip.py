@@ -121,14 +121,16 @@ def _feats(B=3, seed=0):
 
 def test_adaptive_skips_with_the_identity_pose_pass_the_features_unwarped_exactly():
     batch = _identity(fixture_batch(B=3))
-    feats, depth = _feats(), torch.rand(3, 1, 64, 64) + 1.5
+    feats, depth = _feats(), torch.rand(3, 1, 64, 64, generator=torch.Generator().manual_seed(1)) + 1.5
     adaptive = AdaptiveWarpedSkips(**EXACT_WARP)
     out = adaptive(feats, depth, batch["K"], batch["T_tgt_src"])
     assert all(torch.equal(out[lv], feats[lv]) for lv in adaptive.levels)
     assert adaptive.skip_fractions()["all"] == 1.0
-    # ... which is what the exact warp computes, up to the identity warp's round-off (tests/test_geometry.py).
+    # ... which is what the exact warp computes, up to the identity warp's round-off: the back-projected and reprojected
+    # pixel coordinate (|u| <= 64) carries a few float32 ulps (64 * 2^-23 ~ 8e-6 each), and the features' neighbours
+    # differ by up to 1, so the bilinear sample may move by ~1e-5 (1.3e-5 seen over 300 random depths): 1e-4 bounds it.
     warped = WarpedSkips(**EXACT_WARP)(feats, depth, batch["K"], batch["T_tgt_src"])
-    assert all(torch.allclose(out[lv], warped[lv], atol=1e-5, rtol=0) for lv in adaptive.levels)
+    assert all(torch.allclose(out[lv], warped[lv], atol=1e-4, rtol=0) for lv in adaptive.levels)
 
 
 def test_network_with_adaptive_skips_and_identity_pose_equals_the_unwarped_network_exactly(tmp_path):
