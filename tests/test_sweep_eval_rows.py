@@ -369,8 +369,8 @@ def test_the_route_studys_trained_rows_are_the_committed_comparison_jobs(tmp_pat
     study = sweep.load_study(REPO / "sweeps" / "route.yaml")
     assert study.table == "cost" and study.metrics == ("l1", "ssim", "ssim_paper")
     evaluations = {r.name: r for r in study.rows if r.kind == "evaluate"}
-    assert set(evaluations) == {"route_normfix_chairs", "route_chairs", "route_normfix_drive", "route_drive",
-                                "route_margin_normfix_chairs", "route_margin_normfix_drive"}
+    assert set(evaluations) == {f"route{m}{n}_{d}" for m in ("", "_margin") for n in ("", "_normfix")
+                                for d in ("chairs", "cars", "drive") if n or not m}
     for name, r in evaluations.items():  # the default rule, and the norms-fixed networks' rule with a margin
         margin = ("calibration.tolerance=-0.05",) if "margin" in name else ()
         assert r.overrides == ("route=fit", *margin, "time_sizes=[64,256]"), name
@@ -382,7 +382,8 @@ def test_the_route_studys_trained_rows_are_the_committed_comparison_jobs(tmp_pat
     committed = {d.name for d in exported.iterdir()}
     trained = [j for j in jobs if j.kind == "train" and j.dir.name in committed]
     assert {j.dir.name for j in trained} >= {"fid_colour_norms_s0", "fid_colour_norms_s1", "fid_colour_norms_s2",
-                                            "nvs_chairs_conv_s0", "fid_colour_norms_drive_s0", "nvs_drive_conv_s0"}
+                                            "nvs_chairs_conv_s0", "fid_colour_norms_drive_s0", "nvs_drive_conv_s0",
+                                            "nvs_cars_conv_s0"}
     assert all(j.status == Status.DONE and j.dir.parent == exported for j in trained), \
         [(j.dir.name, j.status) for j in trained]
     for j in jobs:
