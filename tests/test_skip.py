@@ -167,6 +167,26 @@ def test_adaptive_skips_warp_only_the_samples_above_the_threshold():
     assert adaptive.skip_fractions() == {}
 
 
+def test_adaptive_skips_from_warped_ones_keep_their_warp_and_start_at_threshold_zero():
+    """What nvs.evaluate skips_threshold=... puts in place of a trained network's warped skips."""
+    batch = fixture_batch(B=2)  # a 20 degree rotation
+    feats, depth = _feats(B=2), torch.rand(2, 1, 64, 64) + 1.5
+    for kwargs in ({}, EXACT_WARP):
+        warped = WarpedSkips(levels=("conv0", "conv3"), **kwargs)
+        adaptive = AdaptiveWarpedSkips.from_warped(warped)
+        assert (adaptive.levels, adaptive.align, adaptive.padding, adaptive.depth_downsample,
+                adaptive.intrinsics_scaling) == (warped.levels, warped.align, warped.padding, warped.depth_downsample,
+                                                 warped.intrinsics_scaling)
+        assert adaptive.threshold_px == 0.0 and adaptive.trained_as == "warped"
+        out, ref = adaptive(feats, depth, batch["K"], batch["T_tgt_src"]), warped(feats, depth, batch["K"],
+                                                                                  batch["T_tgt_src"])
+        assert all(torch.equal(out[lv], ref[lv]) for lv in warped.levels)
+        adaptive.threshold_px = math.inf  # every warp skipped
+        out = adaptive(feats, depth, batch["K"], batch["T_tgt_src"])
+        assert all(torch.equal(out[lv], feats[lv]) for lv in warped.levels)
+    assert AdaptiveWarpedSkips().trained_as == "adaptive"
+
+
 def test_adaptive_skips_gradients_flow_through_warped_and_skipped_samples():
     batch = fixture_batch(B=2)
     T = batch["T_tgt_src"].clone()

@@ -91,7 +91,7 @@ def test_evaluate_calibrates_the_threshold_on_the_validation_pairs(objects_root,
         module = build_module(cfg)
         ckpt = {"state_dict": module.state_dict(), "nvs_config": module.run_config, "global_step": 0}
         stamp(ckpt)
-        path = tmp_path / f"{len(overrides)}.ckpt"
+        path = tmp_path / f"{'_'.join(o.replace('/', '-').replace('=', '-') for o in overrides) or 'default'}.ckpt"
         torch.save(ckpt, path)
         return path
 
@@ -110,7 +110,19 @@ def test_evaluate_calibrates_the_threshold_on_the_validation_pairs(objects_root,
     assert "warp_skipped" in m["test"]
     given = run(adaptive, "skips_threshold=0")
     assert given["skips_threshold"]["threshold_px"] == 0.0 and given["test"]["warp_skipped"] == 0.0
-    with pytest.raises(UserError, match="has no adaptive skips"):
-        run(random_ckpt(), "skips_threshold=calibrate")
+    assert given["skips_threshold"]["trained_skips"] == "adaptive"
+    # The paper's network, trained with warped skips: adaptive ones stand in for them, threshold 0 being the network
+    # itself, so the calibration needs no retraining.
+    warped = random_ckpt()
+    plain = run(warped)
+    at_zero = run(warped, "skips_threshold=0")
+    assert at_zero["skips_threshold"]["trained_skips"] == "warped"
+    assert at_zero["skips_threshold"]["trained_threshold_px"] == 0.0 and at_zero["test"]["warp_skipped"] == 0.0
+    assert at_zero["test"]["l1"] == plain["test"]["l1"] and "warp_skipped" not in plain["test"]
+    fitted = run(warped, "skips_threshold=calibrate", "calibration.tolerance=0.02")["skips_threshold"]
+    assert fitted["trained_skips"] == "warped" and fitted["source"] == "calibrate"
+    assert fitted["validation"]["l1_at_threshold"] <= 1.02 * fitted["validation"]["l1_at_zero"] * (1 + 1e-12)
+    with pytest.raises(UserError, match="has no warped skips to skip"):
+        run(random_ckpt("model/skips=none"), "skips_threshold=calibrate")
     with pytest.raises(UserError, match="calibration.tolerance=-0.05: skips_threshold=calibrate needs"):
         run(adaptive, "skips_threshold=calibrate", "calibration.tolerance=-0.05")

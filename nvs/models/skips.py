@@ -130,7 +130,16 @@ class AdaptiveWarpedSkips(_WarpingSkips):
         if not threshold_px >= 0:
             raise ValueError(f"threshold_px must be >= 0, got {threshold_px}")
         self.threshold_px = float(threshold_px)
+        self.trained_as = "adaptive"  # "warped": standing in for a trained network's warped skips (from_warped)
         self.reset_counts()
+
+    @classmethod
+    def from_warped(cls, skips: WarpedSkips) -> AdaptiveWarpedSkips:
+        """The adaptive skips standing in for a trained network's warped ones: the same levels and the same warp, at
+        ``threshold_px=0`` (every warp done, so the outputs are those of ``skips``) until a threshold is set."""
+        adaptive = cls(skips.levels, 0.0, skips.align, skips.padding, skips.depth_downsample, skips.intrinsics_scaling)
+        adaptive.trained_as = "warped"
+        return adaptive
 
     @contextlib.contextmanager
     def per_sample_threshold(self, threshold_px: torch.Tensor):

@@ -1,6 +1,7 @@
 """``nvs.evaluate skips_threshold=calibrate``: the adaptive skips' ``threshold_px`` (``model/skips=adaptive``) chosen
 on the validation pairs instead of the trained 0.5 px: the largest threshold whose mean validation L1 stays within
-``calibration.tolerance`` of threshold 0 (every warp done) (docs/skipping.md).
+``calibration.tolerance`` of threshold 0 (every warp done) (docs/skipping.md). A network trained with warped skips
+(``model/skips=warped``) is given adaptive ones in their place first: threshold 0 is the trained network itself.
 
 Exact over every threshold at the cost of L + 1 pixel-decoder runs per pair (L skip levels): as the threshold grows,
 a pair's levels are skipped in the order of their displacement bounds, so a pair has at most L + 1 outcomes. Each one
@@ -20,7 +21,7 @@ from nvs.core.errors import UserError
 from nvs.core.types import to_image_range
 from nvs.data.datamodule import NVSDataModule
 from nvs.metrics import per_image as M
-from nvs.models.skips import AdaptiveWarpedSkips
+from nvs.models.skips import AdaptiveWarpedSkips, WarpedSkips
 from nvs.module.lightning_module import NVSModule
 from nvs.run.validation_pass import Calibration, validation_columns
 
@@ -39,12 +40,28 @@ def threshold_option(value) -> str | float | None:
 
 
 def adaptive_skips(module: NVSModule) -> AdaptiveWarpedSkips:
-    """The network's adaptive skips; a network without (exactly one set of) them is one UserError."""
+    """The network's adaptive skips. A network trained with warped skips (``model/skips=warped``, the paper's) gets
+    adaptive ones in their place, at threshold 0 (its own outputs) until one is set: skipping a warp needs no
+    retraining. A network with neither (or several sets) is one UserError."""
     found = [m for m in module.net.modules() if isinstance(m, AdaptiveWarpedSkips)]
+    if not found:
+        found = _adaptive_in_place_of_warped(module.net)
     if len(found) != 1:
-        raise UserError(f"skips_threshold: model '{module.model_name}' has no adaptive skips (model/skips=adaptive); "
-                        "drop skips_threshold")
+        raise UserError(f"skips_threshold: model '{module.model_name}' has no warped skips to skip "
+                        "(model/skips=warped or adaptive); drop skips_threshold")
     return found[0]
+
+
+def _adaptive_in_place_of_warped(net: torch.nn.Module) -> list[AdaptiveWarpedSkips]:
+    """Put adaptive skips in place of the network's one set of warped skips -> [them] (nothing changed: [])."""
+    slots = [(parent, name) for parent in net.modules() for name, child in parent.named_children()
+             if type(child) is WarpedSkips]
+    if len(slots) != 1:
+        return []
+    parent, name = slots[0]
+    adaptive = AdaptiveWarpedSkips.from_warped(getattr(parent, name))
+    setattr(parent, name, adaptive)
+    return [adaptive]
 
 
 def _columns(skips: AdaptiveWarpedSkips):
@@ -100,11 +117,13 @@ def calibrate(module: NVSModule, datamodule: NVSDataModule, settings: Calibratio
     threshold, stats = pick_threshold(bounds, l1, settings.tolerance)
     trained = skips.threshold_px
     skips.threshold_px = threshold
-    return {"threshold_px": threshold, "trained_threshold_px": trained, "source": "calibrate", "validation": stats}
+    return {"threshold_px": threshold, "trained_threshold_px": trained, "trained_skips": skips.trained_as,
+            "source": "calibrate", "validation": stats}
 
 
 def set_threshold(module: NVSModule, threshold: float) -> dict:
     """``skips_threshold=<px>``: that threshold on the network -> its record."""
     skips = adaptive_skips(module)
     trained, skips.threshold_px = skips.threshold_px, float(threshold)
-    return {"threshold_px": float(threshold), "trained_threshold_px": trained, "source": "given"}
+    return {"threshold_px": float(threshold), "trained_threshold_px": trained, "trained_skips": skips.trained_as,
+            "source": "given"}
