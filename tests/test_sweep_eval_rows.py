@@ -369,9 +369,13 @@ def test_the_route_studys_trained_rows_are_the_committed_comparison_jobs(tmp_pat
     study = sweep.load_study(REPO / "sweeps" / "route.yaml")
     assert study.table == "cost" and study.metrics == ("l1", "ssim", "ssim_paper")
     evaluations = {r.name: r for r in study.rows if r.kind == "evaluate"}
-    assert set(evaluations) == {f"route{m}{n}_{d}" for m in ("", "_margin") for n in ("", "_normfix")
-                                for d in ("chairs", "cars", "drive") if n or not m}
+    datasets = ("chairs", "cars", "drive")
+    routes = {f"route{m}{n}_{d}" for m in ("", "_margin") for n in ("", "_normfix") for d in datasets if n or not m}
+    assert set(evaluations) == routes | {f"skips_normfix_{d}" for d in datasets}
     for name, r in evaluations.items():  # the default rule, and the norms-fixed networks' rule with a margin
+        if name.startswith("skips_"):  # per-level warp skips of the norms-fixed network, threshold calibrated
+            assert r.overrides == ("skips_threshold=calibrate",) and r.evaluates == name.replace("skips", "nvs"), name
+            continue
         margin = ("calibration.tolerance=-0.05",) if "margin" in name else ()
         assert r.overrides == ("route=fit", *margin, "time_sizes=[64,256]"), name
     for name in ("comparison_objects", "comparison_drive"):
