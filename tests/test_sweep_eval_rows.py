@@ -374,7 +374,7 @@ def test_the_route_studys_trained_rows_are_the_committed_comparison_jobs(tmp_pat
     assert set(evaluations) == routes | {f"skips_normfix_{d}" for d in datasets}
     for name, r in evaluations.items():  # the default rule, and the norms-fixed networks' rule with a margin
         if name.startswith("skips_"):  # per-level warp skips of the norms-fixed network, threshold calibrated
-            assert r.overrides == ("skips_threshold=calibrate",) and r.evaluates == name.replace("skips", "nvs"), name
+            assert r.overrides == ("skips_threshold=calibrate", "time_sizes=[64]") and r.evaluates == name.replace("skips", "nvs"), name
             continue
         margin = ("calibration.tolerance=-0.05",) if "margin" in name else ()
         assert r.overrides == ("route=fit", *margin, "time_sizes=[64,256]"), name
