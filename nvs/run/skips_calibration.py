@@ -54,12 +54,12 @@ def adaptive_skips(module: NVSModule) -> AdaptiveWarpedSkips:
 
 def _adaptive_in_place_of_warped(net: torch.nn.Module) -> list[AdaptiveWarpedSkips]:
     """Put adaptive skips in place of the network's one set of warped skips -> [them] (nothing changed: [])."""
-    slots = [(parent, name) for parent in net.modules() for name, child in parent.named_children()
+    slots = [(parent, name, child) for parent in net.modules() for name, child in parent.named_children()
              if type(child) is WarpedSkips]
     if len(slots) != 1:
         return []
-    parent, name = slots[0]
-    adaptive = AdaptiveWarpedSkips.from_warped(getattr(parent, name))
+    parent, name, warped = slots[0]
+    adaptive = AdaptiveWarpedSkips.from_warped(warped)
     setattr(parent, name, adaptive)
     return [adaptive]
 
