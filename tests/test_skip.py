@@ -207,6 +207,29 @@ def test_zero_threshold_warps_everything():
     assert all(torch.equal(out[lv], ref[lv]) for lv in ref)
 
 
+def test_forced_levels_skip_or_warp_every_sample_whatever_the_bounds():
+    """What the timing of a study measures: each level skipped alone, the others warped (nvs.sweep.timing)."""
+    batch = fixture_batch(B=2)  # a 20 degree rotation: every bound is far above 0
+    feats, depth = _feats(B=2), torch.rand(2, 1, 64, 64) + 1.5
+    ref = WarpedSkips()(feats, depth, batch["K"], batch["T_tgt_src"])
+    adaptive = AdaptiveWarpedSkips(threshold_px=math.inf)  # unforced: every warp skipped
+    with adaptive.levels_forced(()):
+        out = adaptive(feats, depth, batch["K"], batch["T_tgt_src"])
+    assert all(torch.equal(out[lv], ref[lv]) for lv in ref)
+    adaptive.threshold_px = 0.0
+    with adaptive.levels_forced(adaptive.levels):
+        out = adaptive(feats, depth, batch["K"], batch["T_tgt_src"])
+    assert all(torch.equal(out[lv], feats[lv]) for lv in adaptive.levels)
+    with adaptive.levels_forced(["conv3"]):
+        out = adaptive(feats, depth, batch["K"], batch["T_tgt_src"])
+    assert torch.equal(out["conv3"], feats["conv3"])
+    assert all(torch.equal(out[lv], ref[lv]) for lv in adaptive.levels if lv != "conv3")
+    out = adaptive(feats, depth, batch["K"], batch["T_tgt_src"])  # the block left: the threshold decides again
+    assert all(torch.equal(out[lv], ref[lv]) for lv in ref)
+    with pytest.raises(ValueError, match="conv9"), adaptive.levels_forced(["conv9"]):
+        pass
+
+
 def test_test_summary_reports_the_skipped_fraction_per_level(tmp_path):
     module = _module(tmp_path, "model/skips=adaptive", "loss=[recon]")
     module.eval()

@@ -131,6 +131,7 @@ class AdaptiveWarpedSkips(_WarpingSkips):
             raise ValueError(f"threshold_px must be >= 0, got {threshold_px}")
         self.threshold_px = float(threshold_px)
         self.trained_as = "adaptive"  # "warped": standing in for a trained network's warped skips (from_warped)
+        self._forced: frozenset[str] | None = None  # levels_forced: the levels skipped whatever the bounds
         self.reset_counts()
 
     @classmethod
@@ -151,6 +152,20 @@ class AdaptiveWarpedSkips(_WarpingSkips):
             yield
         finally:
             self.threshold_px = kept
+
+    @contextlib.contextmanager
+    def levels_forced(self, skipped: Sequence[str]):
+        """Within the block the levels in ``skipped`` pass every sample's features unwarped and the other levels warp
+        every sample, whatever the bounds: the timing of a study measures each level skipped alone
+        (``nvs.sweep.timing``)."""
+        unknown = sorted(set(skipped) - set(self.levels))
+        if unknown:
+            raise ValueError(f"levels_forced: {unknown} are not levels of these skips {list(self.levels)}")
+        kept, self._forced = self._forced, frozenset(skipped)
+        try:
+            yield
+        finally:
+            self._forced = kept
 
     def reset_counts(self) -> None:
         # Plain integers, not buffers: counts are per process and never belong in a checkpoint.
@@ -174,7 +189,8 @@ class AdaptiveWarpedSkips(_WarpingSkips):
             f = feats[lv]
             d, Ks = self.at_level(lv, f, depth, K)
             bound = self.last_bounds[lv] = level_displacement(d, Ks, T_tgt_src)
-            warp = bound >= self.threshold_px
+            warp = bound >= self.threshold_px if self._forced is None else torch.full_like(
+                bound, lv not in self._forced, dtype=torch.bool)
             idx = warp.nonzero()[:, 0]
             n = idx.numel()
             self.seen[lv] += f.shape[0]
