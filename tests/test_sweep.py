@@ -146,6 +146,529 @@ def test_skip_study_shares_its_full_rows_with_the_comparison_and_route_studies(t
             assert keys.get(j.dir.name) == {j.key}, j.dir.name
 
 
+def _summary_row(name, l1, ms, kind="train", oracle=False):
+    row = {"row": name, "label": name, "kind": kind, "oracle": oracle, "l1": (l1, None),
+           sweep.PICK_COST: (ms, None)}
+    return row
+
+
+def test_pick_is_the_cheapest_row_within_one_percent_of_the_best_non_oracle_l1():
+    rows = [_summary_row("full", 0.1000, 10.0), _summary_row("skip", 0.1009, 7.0),
+            _summary_row("cheaper_but_worse", 0.1011, 5.0), _summary_row("oracle", 0.0500, 1.0, oracle=True),
+            _summary_row("copy", 0.0900, 0.1, kind="reference"), _summary_row("untimed", 0.1001, None),
+            _summary_row("unfinished", None, 0.5)]
+    best, pick = sweep.pick_cheapest(rows)
+    assert (best["row"], pick["row"]) == ("full", "skip")
+    best, pick = sweep.pick_cheapest(rows, tolerance=0.02)
+    assert pick["row"] == "cheaper_but_worse"
+    # Nothing cheaper within the margin: the best row is its own pick.
+    best, pick = sweep.pick_cheapest([_summary_row("full", 0.1, 10.0), _summary_row("plane", 0.2, 5.0)])
+    assert best is pick and pick["row"] == "full"
+    # Equal cost: the lower L1 wins; no eligible row: no pick.
+    assert sweep.pick_cheapest([_summary_row("a", 0.1005, 5.0), _summary_row("b", 0.1, 5.0)])[1]["row"] == "b"
+    assert sweep.pick_cheapest([_summary_row("oracle", 0.05, 1.0, oracle=True)]) == (None, None)
+
+
+def test_the_pick_is_decided_by_the_interval_of_its_l1_against_the_best(tmp_path):
+    n = 30  # 10 test models x 3 pairs
+    base = [0.20 + 0.01 * (k % 5) for k in range(n)]
+    full = _per_image(tmp_path, "full", base)
+    # 0.5% worse on every pair: the interval is tight and its upper end inside the 1% margin
+    close = _per_image(tmp_path, "close", [v * 1.005 for v in base])
+    # 0.5% worse on the mean, but +-10% by test model: the point estimate is within 1%, the interval is not
+    noisy = _per_image(tmp_path, "noisy", [v * (1.005 + (0.1 if (k // 3) % 2 else -0.1)) for k, v in enumerate(base)])
+
+    def row(name, d, ms):
+        mean = sum(float(x.split(",")[3]) for x in (d / "test_per_image.csv").read_text().splitlines()[1:]) / n
+        return {**_summary_row(name, mean, ms), "dirs": [d]}
+
+    rows = [row("full", full, 10.0), row("close", close, 7.0), row("noisy", noisy, 5.0)]
+    assert rows[2]["l1"][0] <= rows[0]["l1"][0] * 1.01  # the point estimate alone would pick the noisy row
+    best, pick = sweep.pick_cheapest(rows)
+    assert (best["row"], pick["row"]) == ("full", "close")
+    ok, gap = sweep.within_margin(rows[2], best)
+    assert not ok and gap.lo < 0.01 * best["l1"][0] < gap.hi
+    ok, gap = sweep.within_margin(rows[1], best)
+    assert ok and 0 < gap.lo <= gap.hi <= 0.01 * best["l1"][0]
+    # Without per-image results the point estimate decides, and says so.
+    assert sweep.within_margin(_summary_row("x", 0.2009, 1.0), {**_summary_row("b", 0.2, 2.0)}) == (True, None)
+    from nvs.sweep.tables import _pick_sentence
+    gap = sweep.within_margin(pick, best)[1]
+    assert "shown by the interval of ΔL1 against it, Δ +0.00" in _pick_sentence(best, pick, rows[0], "1%", gap)
+
+
+COST_STUDY = {
+    "name": "cost", "seeds": [0], "size": 64, "steps": 10, "group_by": "data", "table": "cost",
+    "metrics": ["l1", "ssim"],
+    "rows": [
+        {"name": "full_chairs", "label": "Full", "experiment": "nvs_chairs"},
+        {"name": "lean_chairs", "label": "Lean", "experiment": "nvs_chairs", "overrides": ["model/depth=plane"]},
+        {"name": "oracle_chairs", "label": "Oracle", "experiment": "nvs_chairs", "oracle": True,
+         "overrides": ["model/depth=oracle"]},
+        {"name": "full_drive", "label": "Full", "experiment": "nvs_drive"},
+        {"name": "adaptive_drive", "label": "Adaptive", "experiment": "nvs_drive",
+         "overrides": ["model/skips=adaptive"]},
+        {"name": "copy_drive", "label": "Copy", "reference": "copy_source", "data": "drive"},
+    ],
+}
+COST_RESULTS = {  # row: (l1, eval forward ms, train step ms, warp_skipped per level or None)
+    "full_chairs": (0.100, 8.0, 300.0, None), "lean_chairs": (0.120, 4.0, 200.0, None),
+    "oracle_chairs": (0.050, 7.0, 250.0, None), "full_drive": (0.200, 8.0, 300.0, None),
+    "adaptive_drive": (0.201, 5.0, 280.0, {"conv0": 0.0, "conv2": 0.25, "conv3": 0.5, "conv4": 0.75}),
+    "copy_drive": (0.300, 0.5, None, None),
+}
+
+
+def test_cost_table_marks_the_pick_per_dataset(tmp_path):
+    path = tmp_path / "cost.yaml"
+    path.write_text(json.dumps(COST_STUDY))
+    study = sweep.load_study(path)
+    root = tmp_path / "runs"
+    for job in sweep.plan(study, root):
+        l1, fwd, step, skipped = COST_RESULTS[job.row.name]
+        sweep.prepare_job_dir(job, root)
+        test = {"l1": l1, "ssim": 0.8, "ssim_paper": 0.9, "psnr": 20.0, "lpips": 0.1, "n_pairs": 4}
+        if skipped:
+            test.update({f"warp_skipped_{lv}": v for lv, v in skipped.items()},
+                        warp_skipped=sum(skipped.values()) / len(skipped))
+        (job.dir / "metrics.json").write_text(json.dumps({
+            "data": job.data, "eval_ms_per_image": fwd + 20, "eval_forward_ms_per_image": fwd,
+            "train_step_ms": step, "device": "cpu: Fake CPU (2 threads)", "test": test}))
+    results = tmp_path / "results"
+    assert sweep.run([str(path), "--collect-only", str(root), "--results", str(results)]) == 0
+    md = (results / "cost.md").read_text()
+    chairs, drive = md.split("## chairs")[1].split("## drive")
+    line = {(grp, ln.split("|")[1].strip()): ln for grp, text in (("chairs", chairs), ("drive", drive))
+            for ln in text.splitlines() if ln.startswith("| ") and "---" not in ln}
+    # chairs: the plane row is 2x faster but 20% worse; the oracle is better and cheaper but never the pick.
+    assert "| ★ |" in line["chairs", "Full"] and "★" not in line["chairs", "Lean"] + line["chairs", "Oracle (oracle)"]
+    assert "| 1.00× | 300 | 0.1000 | 0.8000 | +0.0% |" in line["chairs", "Full"]
+    assert "| 2.00× |" in line["chairs", "Lean"] and "+20.0%" in line["chairs", "Lean"]
+    assert "-50.0%" in line["chairs", "Oracle (oracle)"]
+    assert "nothing can be skipped here" in chairs
+    # drive: the adaptive row is within 1% and cheaper: the pick, with its skipped warps per level.
+    assert "| ★ |" in line["drive", "Adaptive"] and "| 1.60× | 280 |" in line["drive", "Adaptive"]
+    assert "| 38% (0/25/50/75) |" in line["drive", "Adaptive"] and "| — |" in line["drive", "Full"]
+    assert "1.60× faster than Full at +0.5% L1" in drive
+    assert "★" not in line["drive", "Copy (reference)"]
+    rows = list(csv.DictReader(open(results / "cost.csv")))
+    adaptive = next(r for r in rows if r["row"] == "adaptive_drive")
+    assert float(adaptive["warp_skipped_conv3"]) == 0.5 and float(adaptive["train_step_ms"]) == 280
+
+
+def test_paper_numbers_match_the_paper_tables():
+    def paper(stem, metric):
+        return [r.paper.get(metric) for r in sweep.load_study(REPO / "sweeps" / f"{stem}.yaml").rows if r.paper]
+
+    assert paper("ablation", "l1") == [.0769, .0611, .0584, .0949, .0654, .0602, .0603, .1109, .0618]
+    assert paper("ablation", "ssim_paper") == [.9099, .9228, .9256, .8971, .9166, .9231, .9236, .8862, .9212]
+    assert paper("comparison_objects", "l1") == [.1043, .0810, .0769, .0584, .0491, .0444, .0396, .0286]
+    assert paper("comparison_objects", "ssim_paper") == [.8851, .8993, .9099, .9256, .9226, .9282, .9395, .9493]
+    assert paper("comparison_drive", "l1") == [.3119, .1868, .2354, .1985]
+    assert paper("comparison_drive", "ssim_paper") == [.6191, .6582, .6461, .7043]
+    assert paper("depth", "depth_sc_inv") == [.0583, .0523]
+    assert paper("depth", "depth_l1_rel") == [.0360, .0305]
+
+
+@pytest.mark.parametrize("bad, message", [
+    ({"rows": [{"name": "a", "overrides": ["seed=0,1"]}]}, "is a sweep"),
+    ({"rows": [{"name": "a"}, {"name": "a"}]}, "used twice"),
+    ({"rows": [{"name": "a", "reference": "copy_source"}]}, "names 'data'"),
+    ({"rows": [{"name": "a", "colour": 1}]}, "unknown key"),
+    ({"rows": [{"name": "a b"}]}, "names a directory"),
+    ({"rows": [{"name": "a", "paper": {"acc": 1}}]}, "unknown metric"),
+    ({"rows": [{"name": "a", "overrides": ["seed=3"]}]}, "set by the study"),
+    ({"overrides": ["data.size=128"], "rows": [{"name": "a"}]}, "set by the study"),
+    ({"table": "fancy", "rows": [{"name": "a"}]}, "table must be one of"),
+    ({"rows": [{"name": "a", "oracle": "yes"}]}, "oracle must be true or false"),
+    ({"rows": [{"name": "a", "reference": "copy_source", "data": "chairs", "seeds": [0]}]},
+     r"s.yaml:\d+: rows\[0\]: a reference row has no 'seeds'"),
+    ({"rows": [{"name": "a", "seeds": [1, 1]}]}, r"rows\[0\]: seeds must be distinct"),
+    ({"rows": [{"name": "a", "seeds": "two"}]}, "seeds must be"),
+    ({"against": ["c"], "rows": [{"name": "a"}, {"name": "c", "reference": "copy_source", "data": "chairs"}]},
+     r"s.yaml:\d+: against\[0\]: 'c' is not a trained row of the study; trained rows: a"),
+    # a variant ('stands_for') names another trained row with paper numbers, no variant itself, and has none of its own
+    ({"rows": [{"name": "a", "paper": {"l1": 0.1}}, {"name": "v", "stands_for": "v"}]},
+     r"s.yaml:\d+: rows\[1\].stands_for: row 'v' cannot stand for itself"),
+    ({"rows": [{"name": "a", "paper": {"l1": 0.1}}, {"name": "v", "stands_for": "x"}]},
+     r"s.yaml:\d+: rows\[1\].stands_for: 'x' is not a row of the study"),
+    ({"rows": [{"name": "a", "paper": {"l1": 0.1}}, {"name": "b"}, {"name": "v", "stands_for": "b"}]},
+     r"s.yaml:\d+: rows\[2\].stands_for: 'b' is not a trained row with paper numbers; a variant stands for one "
+     r"of: a$"),
+    ({"rows": [{"name": "a", "paper": {"l1": 0.1}}, {"name": "c", "reference": "copy_source", "data": "chairs",
+                                                     "paper": {"l1": 0.2}}, {"name": "v", "stands_for": "c"}]},
+     r"rows\[2\].stands_for: 'c' is not a trained row with paper numbers"),
+    ({"rows": [{"name": "a", "paper": {"l1": 0.1}}, {"name": "v", "stands_for": "a"},
+               {"name": "w", "stands_for": "v"}]},
+     r"s.yaml:\d+: rows\[2\].stands_for: 'v' stands for 'a' itself; name that row \(no chains\)"),
+    ({"rows": [{"name": "a", "paper": {"l1": 0.1}}, {"name": "v", "stands_for": "a", "paper": {"l1": 0.2}}]},
+     r"rows\[1\].stands_for: row 'v' has paper numbers of its own"),
+    ({"rows": [{"name": "a", "paper": {"l1": 0.1}}, {"name": "v", "stands_for": ["a"]}]}, r"rows\[1\].stands_for"),
+])
+def test_malformed_study_is_one_clear_error(tmp_path, bad, message):
+    path = tmp_path / "s.yaml"
+    path.write_text(json.dumps({"size": 64, "steps": 2, **bad}))
+    with pytest.raises(sweep.UserError, match=message):
+        sweep.load_study(path)
+
+
+def test_a_row_runs_its_own_seeds_unless_the_command_line_gives_them(tmp_path):
+    rows = [{"name": "full", "experiment": "nvs_chairs"},
+            {"name": "noskip", "experiment": "nvs_chairs", "overrides": ["model/skips=none"], "seeds": [0]},
+            {"name": "two", "experiment": "nvs_chairs", "overrides": ["model/skips=wo_conv0"], "seeds": 2},
+            {"name": "copy", "reference": "copy_source", "data": "chairs"}]
+    path = tmp_path / "s.yaml"
+    path.write_text(json.dumps({"size": 64, "steps": 2, "seeds": [0, 1, 2], "rows": rows}))
+    planned = {}
+    for job in sweep.plan(sweep.load_study(path), tmp_path / "runs"):
+        planned.setdefault(job.row.name, []).append(job.seed)
+    assert planned == {"full": [0, 1, 2], "noskip": [0], "two": [0, 1], "copy": [0]}
+    # Each (row, seed) is still its own directory: the row's seed list changes which jobs run, not their keys.
+    assert len({j.key for j in sweep.plan(sweep.load_study(path), tmp_path / "runs")}) == 7
+    from nvs.sweep.tables import _seeds_cell
+    assert _seeds_cell(sweep.load_study(path)) == "0, 1, 2; noskip: 0; two: 0, 1 (reference rows: 0)"
+    everywhere = sweep.load_study(path, seeds=[0, 1])
+    assert {r.name: sweep.row_seeds(everywhere, r) for r in everywhere.rows} == {
+        "full": (0, 1), "noskip": (0, 1), "two": (0, 1), "copy": (0,)}
+    assert _seeds_cell(everywhere) == "0, 1 (reference rows: 0)"
+
+
+# -- a fabricated multirun directory --------------------------------------------------------------------------------
+STUDY = {
+    "name": "fab", "title": "fabricated", "paper_source": "Table 9", "seeds": [0, 1], "size": 64, "steps": 10,
+    "overrides": ["trainer.enable_progress_bar=false"], "group_by": "data",
+    "rows": [
+        {"name": "full", "label": "Full model", "experiment": "nvs_chairs",
+         "paper": {"l1": 0.0584, "ssim_paper": 0.9256}},
+        {"name": "chen", "label": "Chen", "experiment": "chen_chairs"},
+        {"name": "noskip", "experiment": "nvs_chairs", "overrides": ["model/skips=none"]},
+        {"name": "copy", "reference": "copy_source", "data": "chairs"},
+    ],
+}
+
+
+def _study(tmp_path, **changes) -> sweep.Study:
+    path = tmp_path / "fab.yaml"
+    path.write_text(json.dumps({**STUDY, **changes}))
+    return sweep.load_study(path)
+
+
+def _fake_result(job: sweep.Job, root: Path, l1: float, record: bool = True) -> None:
+    if record:
+        sweep.prepare_job_dir(job, root)
+    else:
+        job.dir.mkdir(parents=True, exist_ok=True)
+    (job.dir / ".hydra").mkdir(exist_ok=True)
+    (job.dir / ".hydra" / "overrides.yaml").write_text(
+        "".join(f"- {o}\n" for o in [*job.overrides, f"seed={job.seed}"]))
+    test = {"l1": l1, "ssim_paper": 0.9, "ssim": 0.8, "psnr": 20.0, "lpips": 0.1, "n_pairs": 4}
+    if job.row.name == "full":
+        test.update(depth_l1=0.05, depth_l1_rel=0.02, depth_l1_inv=0.01, depth_sc_inv=0.03)
+    (job.dir / "metrics.json").write_text(json.dumps({
+        "model": "nvs", "data": "chairs", "image_size": 64, "seed": job.seed, "steps": 10, "train_wall_s": 100.0 + l1,
+        "train_samples_per_s": 1.0, "params": 1234567, "device": "cpu: Fake CPU (2 threads)", "precision": "32-true",
+        "git_sha": "abc123", "eval_ms_per_image": 5.0, "eval_forward_ms_per_image": 2.0 + l1, "test": test}))
+
+
+def _fake_failure(job: sweep.Job, root: Path, line: str) -> None:
+    sweep.prepare_job_dir(job, root)
+    (job.dir / sweep.FAILED).write_text(line + "\n")
+
+
+@pytest.fixture
+def fabricated(tmp_path):
+    """full: 2 seeds done; chen: s0 done, s1 failed; noskip: s0 done, s1 never ran; copy: done."""
+    study = _study(tmp_path)
+    root = tmp_path / "runs" / study.scale
+    jobs = {(j.row.name, j.seed): j for j in sweep.plan(study, root)}
+    _fake_result(jobs["full", 0], root, 0.10)
+    _fake_result(jobs["full", 1], root, 0.12)
+    _fake_result(jobs["chen", 0], root, 0.20)
+    _fake_failure(jobs["chen", 1], root, "NonFiniteLossError: non-finite training loss at step 7 (recon)")
+    _fake_result(jobs["noskip", 0], root, 0.30)
+    _fake_result(jobs["copy", 0], root, 0.40)
+    return study, root
+
+
+def test_collection_of_a_fabricated_multirun(fabricated, tmp_path):
+    study, root = fabricated
+    results = tmp_path / "results"
+    rc = sweep.run([str(study.path), "--collect-only", str(root), "--results", str(results)])
+    assert rc == 1  # not every job finished
+    with open(results / "fab.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 7  # one line per job, the failed and the missing one included
+    by = {(r["row"], r["seed"]): r for r in rows}
+    assert by["chen", "1"]["status"] == "failed" and "step 7" in by["chen", "1"]["error"]
+    assert by["noskip", "1"]["status"] == "missing"
+    assert float(by["full", "1"]["l1"]) == pytest.approx(0.12)
+    assert by["full", "0"]["overrides"].startswith("experiment=nvs_chairs") and by["full", "0"]["paper_l1"] == "0.0584"
+    assert float(by["full", "0"]["depth_sc_inv"]) == pytest.approx(0.03) and by["chen", "0"]["depth_sc_inv"] == ""
+
+    md = (results / "fab.md").read_text()
+    for field in ("| command | `python -m nvs.sweep", "| git SHA |", "| date |", "| device | cpu: Fake CPU",
+                  "| image size | 64² |", "| steps | 10 |", "| seeds | 0, 1"):
+        assert field in md, field
+    line = {ln.split("|")[1].strip(): ln for ln in md.splitlines() if ln.startswith("| ") and "|" in ln[2:]}
+    # mean ± sample std of 0.10 and 0.12; the paper's number beside ours, labelled as such.
+    assert "| 2/2 | 0.1100 ± 0.0141 |" in line["Full model"] and "| 0.0584 | 0.9256 |" in line["Full model"]
+    assert "Paper L1" in md and "real datasets at 256²" in md and "Table 9" in md
+    assert "**FAILED** s1 failed: NonFiniteLossError: non-finite training loss at step 7" in line["Chen"]
+    assert "| 1/2 | 0.2000 |" in line["Chen"]
+    assert "s1 missing" in line["noskip"]
+    assert "| 1/1 | 0.4000 |" in line["copy (reference)"]
+    assert "depth sc-inv" in md  # a depth metric some row has gets its column
+
+
+def test_mean_std_is_the_sample_std():
+    assert sweep.mean_std([1.0, 2.0, 3.0]) == (2.0, 1.0)
+    assert sweep.mean_std([0.5]) == (0.5, None)
+    assert sweep.mean_std([None]) == (None, None)
+
+
+# -- planning: what a (re-)run launches -----------------------------------------------------------------------------
+def test_planning_skips_done_and_relaunches_the_rest(fabricated):
+    study, root = fabricated
+    jobs = sweep.plan(study, root)
+    status = {(j.row.name, j.seed): j.status for j in jobs}
+    assert status == {("full", 0): "done", ("full", 1): "done", ("chen", 0): "done", ("chen", 1): "failed",
+                      ("noskip", 0): "done", ("noskip", 1): "missing", ("copy", 0): "done"}
+    launch = {(j.row.name, j.seed) for j in sweep.to_launch(jobs)}
+    assert launch == {("chen", 1), ("noskip", 1)}
+    assert {(j.row.name, j.seed) for j in sweep.to_launch(jobs, retry_failed=False)} == {("noskip", 1)}
+    assert len(sweep.to_launch(jobs, force=True)) == len(jobs)
+
+
+def test_a_changed_config_is_stale_and_moved_aside_before_relaunch(fabricated, tmp_path):
+    study, root = fabricated
+    changed = _study(tmp_path, steps=10, overrides=["trainer.enable_progress_bar=false", "optim.lr=0.001"])
+    jobs = {(j.row.name, j.seed): j for j in sweep.plan(changed, root)}
+    assert jobs["full", 0].status == "stale" and jobs["copy", 0].status == "done"  # reference rows ignore optim
+    assert jobs["full", 0] in sweep.to_launch(list(jobs.values()))
+    from nvs.sweep.collect import collect
+
+    record = next(r for r in collect([jobs["full", 0]]))
+    assert record["status"] == "stale" and "optim.lr" in record["error"] and record["l1"] is None
+    sweep.prepare_job_dir(jobs["full", 0], root)
+    assert not (jobs["full", 0].dir / "metrics.json").exists()  # the old result can no longer be mistaken for new
+    assert list((root / ".stale").glob("full_s0.*/metrics.json"))
+    assert sweep.job_status(jobs["full", 0].dir, jobs["full", 0].key)[0] == "missing"
+
+
+def test_placement_only_overrides_do_not_change_the_key(tmp_path):
+    study = _study(tmp_path)
+    a = sweep.plan(study, tmp_path / "a")
+    b = sweep.plan(study, tmp_path / "b", extra=("trainer.enable_progress_bar=true", "hydra/launcher=joblib"))
+    c = sweep.plan(study, tmp_path / "c", extra=("trainer.max_epochs=3",))
+    assert [j.key for j in a] == [j.key for j in b]
+    assert all(x.key != y.key for x, y in zip(a, c) if not x.row.reference)
+    assert len({j.key for j in a}) == len(a)  # every (row, seed) is its own job
+
+
+def test_an_interrupted_job_is_incomplete_and_relaunched(fabricated):
+    study, root = fabricated
+    job = next(j for j in sweep.plan(study, root) if (j.row.name, j.seed) == ("noskip", 1))
+    sweep.prepare_job_dir(job, root)
+    (job.dir / "checkpoints").mkdir()
+    (job.dir / "checkpoints" / "last.ckpt").write_bytes(b"x")
+    assert sweep.job_status(job.dir, job.key) == ("incomplete", "")
+    sweep.prepare_job_dir(job, root)  # relaunching keeps the checkpoint that ckpt_path=auto resumes from
+    assert (job.dir / "checkpoints" / "last.ckpt").is_file()
+
+
+def test_last_error_line():
+    log = "Seed set to 0\nTraceback (most recent call last):\n  File x\nValueError: bad value\nsome trailing note\n"
+    assert sweep.last_error_line(log) == "ValueError: bad value"
+    assert sweep.last_error_line("warn\nerror: data root missing\n") == "error: data root missing"
+    assert sweep.last_error_line("just text\n") == "just text"
+    assert sweep.last_error_line("just text\n", fallback=False) == ""
+    assert sweep.last_error_line("x\nnvs.module.lightning_module.NonFiniteLossError: nan\n") == "nvs.module.lightning_module.NonFiniteLossError: nan"
+    assert sweep.last_error_line("UserWarning: careful\n", fallback=False) == ""
+
+
+def test_parallel_launch_never_oversubscribes_the_cores(monkeypatch):
+    from nvs.sweep import launch as launching
+
+    monkeypatch.setattr(launching, "available_cores", lambda: 8)
+    launch = sweep.Launch.local(jobs=4)
+    assert launch.threads == 2 and "hydra/launcher=joblib" in launch.hydra_overrides
+    assert "hydra.launcher.n_jobs=4" in launch.hydra_overrides
+    assert sweep.Launch.local(jobs=1).threads == 8 and sweep.Launch.local(jobs=1).hydra_overrides == ()
+    with pytest.raises(sweep.UserError, match="cores"):
+        sweep.Launch.local(jobs=4, threads=4)
+
+
+def test_multirun_command_puts_each_job_in_its_own_directory(tmp_path):
+    study = _study(tmp_path)
+    row = study.rows[0]
+    cmd = sweep.multirun_command(study, row, [0, 1], tmp_path, sweep.Launch(jobs=1, threads=2))
+    assert cmd[1:4] == ["-m", "nvs.train", "-m"] and "seed=0,1" in cmd
+    assert f"hydra.sweep.dir={tmp_path.resolve()}" in cmd and "hydra.sweep.subdir=full_s${seed}" in cmd
+    ref = sweep.multirun_command(study, study.rows[3], [0], tmp_path, sweep.Launch())
+    assert ref[2] == "nvs.evaluate" and "model=copy_source" in ref and not any("max_steps" in c for c in ref)
+
+
+# -- Pareto and figures ----------------------------------------------------------------------------------------------
+def test_pareto_front_by_hand():
+    cost = [1.0, 2.0, 3.0, 2.5, 1.0]
+    err = [0.5, 0.3, 0.1, 0.4, 0.6]
+    # (2.5, 0.4) is beaten by (2.0, 0.3); (1.0, 0.6) by (1.0, 0.5).
+    assert pareto_lib.pareto_front(cost, err) == [True, True, True, False, False]
+
+
+def test_pareto_report_from_sweep_csv(fabricated, tmp_path):
+    study, root = fabricated
+    results = tmp_path / "results"
+    sweep.run([str(study.path), "--collect-only", str(root), "--results", str(results)])
+    md, png = pareto.run([str(results / "fab.csv"), "--results", str(results)])
+    text = md.read_text()
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "## chairs" in text and "copy" not in text.split("## chairs")[1]  # reference rows are not methods
+    full = next(ln for ln in text.splitlines() if ln.startswith("| Full model"))
+    assert "| 0.1100 |" in full and full.count("★") == 4  # lowest L1 at every cost in this fabricated set
+
+
+def test_pareto_lists_a_row_without_paper_numbers_under_its_own_label(tmp_path):
+    """The norms-fixed network (a variant: 'stands_for', no paper numbers) is its own labelled point beside the
+    paper's row, once its jobs exist; before that it is not in the report."""
+    rows = [*STUDY["rows"][:1], {"name": "fixed", "label": "Full, norms fixed", "experiment": "nvs_chairs",
+                                 "overrides": ["fidelity.conv0_norm=none"], "stands_for": "full"}]
+    study = _study(tmp_path, rows=rows)
+    root = tmp_path / "runs" / study.scale
+    results = tmp_path / "results"
+    jobs = sweep.plan(study, root)
+    for j in jobs:
+        if j.row.name == "full":
+            _fake_result(j, root, 0.12)
+    sweep.run([str(study.path), "--collect-only", str(root), "--results", str(results)])
+    assert "norms fixed" not in pareto.run([str(results / "fab.csv"), "--results", str(results)])[0].read_text()
+    for j in jobs:
+        if j.row.name == "fixed":
+            _fake_result(j, root, 0.08)
+    sweep.run([str(study.path), "--collect-only", str(root), "--results", str(results)])
+    text = pareto.run([str(results / "fab.csv"), "--results", str(results)])[0].read_text()
+    table = [ln for ln in text.splitlines() if ln.startswith("| ") and "---" not in ln][1:]
+    assert [ln.split(" | ")[0] for ln in table] == ["| Full, norms fixed", "| Full model"]  # by L1
+    assert table[0].startswith("| Full, norms fixed | fab | 2 | 0.0800 |")
+
+
+def test_pareto_never_puts_two_scales_on_one_front(fabricated, tmp_path):
+    study, root = fabricated
+    results = tmp_path / "results"
+    sweep.run([str(study.path), "--collect-only", str(root), "--results", str(results)])
+    rows = list(csv.DictReader(open(results / "fab.csv")))
+    other = tmp_path / "other.csv"
+    with open(other, "w", newline="") as f:  # the same jobs as if trained 10x longer elsewhere
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        for r in rows:
+            long_dir = str(Path(r["run_dir"]).parent.with_name("64px_100steps") / Path(r["run_dir"]).name)
+            w.writerow(r | {"steps": "100", "run_dir": long_dir, "train_wall_s": "1.0"})
+    agg = pareto_lib.load_rows([results / "fab.csv", other])
+    assert set(agg["data"]) == {"chairs @ 64²/10 steps", "chairs @ 64²/100 steps"}
+    # each scale has its own front: the fast long run does not knock the short runs off theirs
+    short = agg[agg["data"] == "chairs @ 64²/10 steps"]
+    assert short["front_l1_train_wall_s"].any()
+    # a job the stopping rule ended early stays in its budget's series
+    with open(other, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]) + ["stop"])
+        w.writeheader()
+        for r in rows:
+            w.writerow(r | {"steps": "7", "stop": "converged", "run_dir": r["run_dir"] + "_ruled"})
+    assert set(pareto_lib.load_rows([other])["data"]) == {"chairs"}  # one scale: no suffix
+    mixed = pareto_lib.load_rows([results / "fab.csv", other])
+    assert set(mixed["data"]) == {"chairs @ 64²/10 steps", "chairs @ 64²/10 steps at most"}
+
+
+def test_pareto_reads_the_paper_studies_by_default(tmp_path):
+    header = ",".join(sweep.CSV_COLUMNS) + "\n"
+    for name in ("ablation", "skip", "comparison_drive"):
+        (tmp_path / f"{name}.csv").write_text(header)
+    assert [p.name for p in pareto_lib.default_csvs(tmp_path)] == ["ablation.csv", "comparison_drive.csv"]
+
+
+def test_unproject_inverts_the_projection():
+    from nvs.report.figures import unproject
+
+    K = torch.tensor([[100.0, 0, 31.5], [0, 120.0, 31.5], [0, 0, 1]], dtype=torch.float64)
+    depth = torch.rand(64, 64, dtype=torch.float64) + 1
+    pts = unproject(depth, K)
+    proj = pts @ K.T
+    uv = proj[:, :2] / proj[:, 2:]
+    v, u = torch.meshgrid(torch.arange(64.0), torch.arange(64.0), indexing="ij")
+    assert torch.allclose(uv, torch.stack([u, v], -1).reshape(-1, 2).double(), atol=1e-9)
+    assert torch.allclose(pts[:, 2], depth.reshape(-1))
+    assert torch.allclose(pts[0], torch.tensor([-31.5 / 100, -31.5 / 120, 1.0], dtype=torch.float64) * depth[0, 0])
+
+
+# -- a tiny real sweep end to end ------------------------------------------------------------------------------------
+def _sweep(*args):
+    return subprocess.run([sys.executable, "-m", "nvs.sweep", *args], cwd=REPO, capture_output=True, text=True,
+                          timeout=900)
+
+
+def _tiny_study(tmp_path, objects_root, steps: int, overrides: list[str], references: list[dict]):
+    """tiny.yaml: one trained row (the full model's network, recon only) on the fixture chairs plus ``references``."""
+    study = tmp_path / "tiny.yaml"
+    study.write_text(json.dumps({
+        "name": "tiny", "seeds": [0], "size": 64, "steps": steps,
+        "overrides": [f"data.root={objects_root}", "trainer.val_check_interval=2", "data.loader.batch_size=2",
+                      "trainer.limit_val_batches=1", "trainer.enable_progress_bar=false", *overrides],
+        "rows": [{"name": "recon_only", "experiment": "nvs_chairs", "overrides": ["loss=[recon]"]}, *references]}))
+    return study
+
+
+@pytest.mark.slow
+def test_tiny_sweep_end_to_end_then_rerun_launches_nothing(objects_root, tmp_path):
+    study = _tiny_study(tmp_path, objects_root, 2, [], [{"name": "copy", "reference": "copy_source", "data": "chairs"}])
+    runs, results = tmp_path / "runs", tmp_path / "results"
+    args = [str(study), "--runs", str(runs), "--results", str(results)]
+    res = _sweep(*args)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "launching 2" in res.stderr
+    job = runs / "64px_2steps" / "recon_only_s0"
+    metrics = json.loads((job / "metrics.json").read_text())
+    assert metrics["steps"] == 2 and metrics["test"]["n_pairs"] == 4
+    assert (job / sweep.JOB_RECORD).is_file() and (job / ".hydra" / "overrides.yaml").is_file()
+    assert (job / sweep.STDERR).is_file()  # the job's own stderr, kept by the Hydra callback
+    assert "(2 threads)" in metrics["device"] or "threads)" in metrics["device"]
+    md = (results / "tiny.md").read_text()
+    assert "| recon_only | 1/1 |" in md and "| copy (reference) | 1/1 |" in md
+    stamps = {p: p.stat().st_mtime_ns for p in runs.rglob("metrics.json")}
+    assert len(stamps) == 2
+
+    again = _sweep(*args, "--figures")
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert "2 done; launching 0" in again.stderr and "[sweep] $" not in again.stderr  # no multirun started
+    assert {p: p.stat().st_mtime_ns for p in runs.rglob("metrics.json")} == stamps
+    for name in ("tiny_qualitative_chairs.png", "tiny_depth_points.png", "tiny_curves.png"):
+        assert (results / name).read_bytes()[:4] == b"\x89PNG", name
+
+
+def failing_study(tmp_path: Path) -> Path:
+    """A two-seed study of one row whose data root does not exist: every job fails with a UserError."""
+    study = tmp_path / "bad.yaml"
+    study.write_text(json.dumps({
+        "name": "bad", "seeds": [0, 1], "size": 64, "steps": 2,
+        "overrides": ["trainer.val_check_interval=2", "data.loader.batch_size=2", "trainer.enable_progress_bar=false",
+                      "loss=[recon]"],
+        "rows": [{"name": "nodata", "experiment": "nvs_chairs", "overrides": [f"data.root={tmp_path}/none"]}]}))
+    return study
+
+
+@pytest.mark.slow
+def test_failed_jobs_are_recorded_with_their_error_line(objects_root, tmp_path):
+    # sys.exit inside the job (a UserError) ends the multirun process; the second seed must still get its turn.
+    study = failing_study(tmp_path)
+    res = _sweep(str(study), "--runs", str(tmp_path / "runs"), "--results", str(tmp_path / "results"))
+    assert res.returncode == 1
+    for seed in (0, 1):
+        failed = (tmp_path / "runs" / "64px_2steps" / f"nodata_s{seed}" / sweep.FAILED).read_text()
+        assert failed.startswith("error:") and "does not exist" in failed
+    md = (tmp_path / "results" / "bad.md").read_text()
+    assert "**FAILED** s0, s1 failed: error:" in md
+
+
 @pytest.mark.slow
 def test_skip_study_rows_run_end_to_end_on_fixture_data(objects_root, tmp_path):
     """The chairs rows of sweeps/skip.yaml, 2 steps each on the fixture data: every component trains, tests, and
