@@ -81,7 +81,8 @@ def config_at(run: DictConfig, size: int) -> DictConfig:
     return cfg
 
 
-def _autocast(precision, device: torch.device):
+def autocast_for(precision, device: torch.device):
+    """The autocast context of a Lightning precision string (fp32: none)."""
     text = str(precision)
     if "bf16" in text:
         return torch.autocast(device.type, dtype=torch.bfloat16)
@@ -98,7 +99,7 @@ def median_ms_per_image(forward: Callable[[], object], batch_size: int, repeats:
             torch.cuda.synchronize(device)
 
     times = []
-    with torch.no_grad(), _autocast(precision, device):
+    with torch.no_grad(), autocast_for(precision, device):
         for i in range(WARMUP + repeats):
             sync()
             t0 = time.perf_counter()

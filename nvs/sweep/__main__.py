@@ -75,6 +75,9 @@ def _parser() -> argparse.ArgumentParser:
                    "jobs' pinned precision (e.g. bf16 without native bf16) >= 1.5x slower than its fastest mode")
     p.add_argument("--skip-failed", action="store_true", help="do not retry jobs that failed before")
     p.add_argument("--force", action="store_true", help="re-run every job (old directories go to <root>/.stale)")
+    p.add_argument("--time", action="store_true", help="time every trained and evaluation row's forward on this "
+                   "machine in one process, interleaved, at the study's size and 256² (the --rows ones only, where "
+                   "given), into <results>/timing/<study>.json, read by the cost table (nvs.sweep.timing)")
     p.add_argument("--figures", action="store_true", help="also draw the study's figures (nvs.figures) into "
                    "--results from the finished jobs")
     return p
@@ -150,6 +153,8 @@ def run(argv: list[str] | None = None) -> int:
     seeds = list(range(args.seeds)) if args.seeds is not None else None
     study = load_study(args.study, seeds=seeds, size=args.size, steps=args.steps)
     extra = tuple(args.overrides)
+    if args.time and study.table != "cost":
+        raise UserError(f"--time: {study.path} has no cost table (table: cost) to show the times in")
     root = Path(args.collect_only) if args.collect_only else Path(args.runs) / study.scale
     # Committed jobs count as finished, except under --force (which re-runs everything into --runs).
     exported = None if args.force else export_root(args.results, study.scale)
@@ -230,6 +235,11 @@ def run(argv: list[str] | None = None) -> int:
         for j in jobs:  # the tables read the committed copies, as a fresh clone will
             if j.dir.name in written:
                 j.dir = dest / j.dir.name
+    if args.time:  # after the jobs: nothing else runs beside the timed forwards
+        from nvs.sweep.time_rows import run_timing
+
+        path = run_timing(study, args.results, _selected_rows(study, args.rows) if args.rows else None)
+        print(f"[sweep] wrote {path}", file=sys.stderr)
     csv_path, md_path = write_results(study, jobs, args.results, command)
     counts = collections.Counter(j.status for j in jobs)
     print(f"[sweep] wrote {csv_path} and {md_path} ("

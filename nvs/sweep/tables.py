@@ -19,6 +19,7 @@ from nvs.sweep.paper_order import decide, ordering_lines
 from nvs.sweep.per_model_plot import per_model_png
 from nvs.sweep.pick import PICK_COST, PICK_L1_TOLERANCE, margin_clause, pick_with_gap
 from nvs.sweep.study import Study, row_seeds
+from nvs.sweep.timing import attach, header_cell, pick_cost, read_timing, timed_cells, timed_legend, timing_path
 
 
 
@@ -53,9 +54,12 @@ def _seeds_cell(study) -> str:
     return f"{text} (reference rows: {study.seeds[0]})"
 
 
-def render(study: Study, records: list[dict], provenance: dict) -> tuple[str, dict[str, bytes]]:
-    """The study's Markdown, and the per-model figures it links to: {file name: PNG}."""
+def render(study: Study, records: list[dict], provenance: dict,
+           timing: tuple[dict, Path] | None = None) -> tuple[str, dict[str, bytes]]:
+    """The study's Markdown, and the per-model figures it links to: {file name: PNG}. ``timing``: the study's timing
+    file and its path (``nvs.sweep.timing``), shown by a cost table."""
     rows = summarize(study, records)
+    timed = attach(study, rows, timing[0]) if timing and study.table == "cost" else []
     # Image metrics always have a column; depth metrics only where some row has them (or the paper does).
     present = [m for m in study.metrics if m in IMAGE_METRICS
                or any(r[m][0] is not None for r in rows) or any(m in r["paper"] for r in rows)]
@@ -78,6 +82,7 @@ def render(study: Study, records: list[dict], provenance: dict) -> tuple[str, di
         f"| precision | {precision_cell(records)} |",
         f"| jobs | {', '.join(f'{n} {s}' for s, n in sorted(counts.items()))} |",
         f"| test sets | {test_sets_cell(records)} |",
+        *([f"| timing | {header_cell(*timing)} |"] if timed else []),
         "",
     ]
     if paper_metrics:
@@ -98,7 +103,7 @@ def render(study: Study, records: list[dict], provenance: dict) -> tuple[str, di
                   *convergence_tables(records, study.steps)]
     figures: dict[str, bytes] = {}
     if study.table == "cost":
-        lines += _cost_tables(groups, present)
+        lines += _cost_tables(groups, present, timed, study.size)
     else:
         lines += _metrics_tables(groups, present, paper_metrics, study.against, study.results_stem, figures)
     return "\n".join(lines), figures
@@ -180,11 +185,12 @@ def _skipped_cell(r: dict) -> str:
                                                               for v in levels) + ")"
 
 
-def _cost_tables(groups: dict[str | None, list[dict]], present: list[str]) -> list[str]:
+def _cost_tables(groups: dict[str | None, list[dict]], present: list[str], timed: list[int] = (),
+                 size: int = 0) -> list[str]:
     """Cost against error per dataset: eval forward time, speed-up over the first trained row, median train step
     time, the metrics, L1 relative to the best non-oracle row, warps skipped, the routes and timed sizes where some
-    row has them (``nvs.sweep.eval_table``), and the pick (see ``nvs.sweep.pick``); under each table the pick and the
-    evaluation rows against the rows they evaluate."""
+    row has them (``nvs.sweep.eval_table``), the timing pass's columns (``timed``: its sizes) and the pick (see
+    ``nvs.sweep.pick``); under each table the pick and the evaluation rows against the rows they evaluate."""
     pct = f"{100 * PICK_L1_TOLERANCE:g}%"
     every = [r for grows in groups.values() for r in grows]
     columns = Columns.of(every)
@@ -198,31 +204,37 @@ def _cost_tables(groups: dict[str | None, list[dict]], present: list[str]) -> li
              f"bootstrap over seeds and test groups) is at most {pct} of the best's L1 (the point estimate where a "
              "row has no per-image results). Warps skipped: the fraction of (test sample, skip level) warps an "
              "adaptive model skipped, then "
-             "per level conv0/conv2/conv3/conv4 in %." + (f" {legend}" if legend else ""), ""]
+             "per level conv0/conv2/conv3/conv4 in %." + (f" {legend}" if legend else "")
+             + (f" {timed_legend(timed, size)}" if timed else ""), ""]
     header = ["Configuration", "n", "Eval (ms/img)", "×", "Train (ms/step)",
               *[f"{SPECS[m].label} {SPECS[m].arrow}" for m in present], "ΔL1", "Warps skipped",
-              *columns.header(), "Pick", "Status"]
+              *columns.header(), *[h for s in timed for h in (f"Timed {s}² (ms/img)", f"× timed {s}²")],
+              "Pick", "Status"]
     for group, grows in groups.items():
         if group is not None:
             lines += [f"## {group}", ""]
-        best, pick, gap = pick_with_gap(grows)
-        base = next((r for r in grows if r["kind"] == "train" and not r["oracle"] and r[PICK_COST][0]), None)
+        cost = pick_cost(grows, timed, size)
+        best, pick, gap = pick_with_gap(grows, cost)
+        base = next((r for r in grows if r["kind"] == "train" and not r["oracle"] and r[cost][0]), None)
+        first = next((r for r in grows if r["kind"] == "train" and not r["oracle"] and r[PICK_COST][0]), None)
         lines += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
         for r in grows:
-            cost = r[PICK_COST][0]
+            own = r[PICK_COST][0]
             cells = [_label(r), f"{r['n_done']}/{r['n_jobs']}", _fmt(*r[PICK_COST], 1),
-                     f"{base[PICK_COST][0] / cost:.2f}×" if base and cost else "—",
+                     f"{first[PICK_COST][0] / own:.2f}×" if first and own else "—",
                      _fmt(*r["train_step_ms"], 0) if r["kind"] == "train" else "—"]
             cells += [_fmt(*r[m], SPECS[m].decimals) for m in present]
             cells += [f"{100 * (r['l1'][0] / best['l1'][0] - 1):+.1f}%" if best and r["l1"][0] is not None else "—",
-                      _skipped_cell(r), *columns.cells(r), "★" if r is pick else "", _status(r)]
+                      _skipped_cell(r), *columns.cells(r), *timed_cells(r, grows, timed),
+                      "★" if r is pick else "", _status(r)]
             lines.append("| " + " | ".join(cells) + " |")
-        lines += ["", _pick_sentence(best, pick, base, pct, gap), ""]
+        lines += ["", _pick_sentence(best, pick, base, pct, gap, cost), ""]
         lines += evaluation_lines(grows, columns)
     return lines
 
 
-def _pick_sentence(best: dict | None, pick: dict | None, base: dict | None, pct: str, gap: Gap | None) -> str:
+def _pick_sentence(best: dict | None, pick: dict | None, base: dict | None, pct: str, gap: Gap | None,
+                   cost: str = PICK_COST) -> str:
     if best is None or pick is None:
         return "No pick: no trained row without ground truth has both an L1 and an eval time yet."
     head = f"**Pick**: {md_cell(pick['label'])}, the cheapest at evaluation within {pct} of the best L1 " \
@@ -232,7 +244,7 @@ def _pick_sentence(best: dict | None, pick: dict | None, base: dict | None, pct:
     if base is None or pick is base:
         return head + ": no configuration cheaper than the first row stays within that margin, so nothing can be " \
                       "skipped here at this budget."
-    return head + f": {base[PICK_COST][0] / pick[PICK_COST][0]:.2f}× faster than {md_cell(base['label'])} at " \
+    return head + f": {base[cost][0] / pick[cost][0]:.2f}× faster than {md_cell(base['label'])} at " \
                   f"{100 * (pick['l1'][0] / base['l1'][0] - 1):+.1f}% L1 against it."
 
 
@@ -255,7 +267,10 @@ def write_results(study: Study, jobs: list[Job], results_dir: str | Path, comman
     records = collect(jobs)
     results_dir = Path(results_dir)
     csv_path, md_path = results_dir / f"{study.results_stem}.csv", results_dir / f"{study.results_stem}.md"
-    text, figures = render(study, records, provenance(records, command))
+    timing_file = timing_path(results_dir, study)
+    timing = read_timing(timing_file, study) if study.table == "cost" else None
+    text, figures = render(study, records, provenance(records, command),
+                           (timing, timing_file) if timing else None)
     files = {csv_path: render_csv(records).encode(), md_path: text.encode(),
              **{results_dir / name: png for name, png in figures.items()}}
     if study.table == "convergence" and (png := curves_png(records)) is not None:
