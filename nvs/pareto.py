@@ -6,7 +6,7 @@ marked, and under each dataset's table the pick: the cheapest row at evaluation 
 decided by the interval of its L1 against the best (``nvs.sweep.pick``). Reference rows (no training) are left out;
 a job shared by several studies counts once. Rows trained at different scales (image size, steps) are never
 compared: each scale of a dataset is its own series and front.
-By default the paper's studies (ablation, comparison_*) in ``--results`` are read.
+By default the paper's studies (ablation, comparison_*) and the skip study in ``--results`` are read.
 """
 
 from __future__ import annotations

@@ -65,3 +65,28 @@ def test_the_report_prints_each_datasets_pick_under_its_table(tmp_path, monkeypa
     md, _ = pareto.run(["results/fab.csv", "--results", "results"])
     text = md.read_text()
     assert "**Pick**: Close" in text and text.index("| Close |") < text.index("**Pick**: Close")
+
+
+def test_oracle_rows_are_left_out_and_the_skip_study_is_read_by_default(tmp_path, monkeypatch):
+    """A row that uses ground truth at test time (the CSV's oracle column) is no configuration: however cheap and good,
+    it is neither a point nor the pick. The skip study's CSV is among the default inputs."""
+    monkeypatch.chdir(tmp_path)
+    jobs = tmp_path / "results" / "jobs" / "64px_10000steps"
+    fields = ["study", "row", "label", "kind", "data", "seed", "status", "run_dir", "l1", "ssim_paper",
+              "train_wall_s", PICK_COST, "image_size", "steps", "oracle"]
+    out = []
+    for label, stem, values, ms, oracle in (("Full", "full", BASE, 10.0, ""),
+                                            ("Oracle depth", "oracle", [v * 0.5 for v in BASE], 1.0, "True")):
+        d = _job(jobs, f"{stem}_s0", values)
+        out.append({"study": "skip", "row": stem, "label": label, "kind": "train", "data": "chairs", "seed": 0,
+                    "status": "done", "run_dir": d.relative_to(tmp_path).as_posix(), "oracle": oracle,
+                    "l1": sum(values) / len(values), "ssim_paper": 0.9, "train_wall_s": 100.0, PICK_COST: ms,
+                    "image_size": 64, "steps": 10000})
+    with open(tmp_path / "results" / "skip.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=fields)
+        w.writeheader()
+        w.writerows(out)
+    md, _ = pareto.run(["--results", "results"])  # no CSV named: the default studies, skip.csv among them
+    text = md.read_text()
+    assert "`results/skip.csv`" in text and "| Full |" in text and "**Pick**: Full" in text
+    assert "Oracle depth" not in text

@@ -246,6 +246,10 @@ def test_cost_table_marks_the_pick_per_dataset(tmp_path):
     assert "| 2.00× |" in line["chairs", "Lean"] and "+20.0%" in line["chairs", "Lean"]
     assert "-50.0%" in line["chairs", "Oracle (oracle)"]
     assert "nothing can be skipped here" in chairs
+    # The CSV marks the oracle row's jobs (nvs.pareto leaves them out), only those.
+    with open(results / "cost.csv") as f:
+        marked = {r["row"]: r["oracle"] for r in csv.DictReader(f)}
+    assert marked == {name: "True" if name == "oracle_chairs" else "" for name in COST_RESULTS}
     # drive: the adaptive row is within 1% and cheaper: the pick, with its skipped warps per level.
     assert "| ★ |" in line["drive", "Adaptive"] and "| 1.60× | 280 |" in line["drive", "Adaptive"]
     assert "| 38% (0/25/50/75) |" in line["drive", "Adaptive"] and "| — |" in line["drive", "Full"]

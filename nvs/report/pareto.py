@@ -1,7 +1,8 @@
 """Run time against error from the sweep results: the rows, their Pareto front per dataset and scale, the report.
 
 Every finished trained row is a point under its label, with or without paper numbers (a variant such as the
-norms-fixed network stands beside the paper's full model); reference rows (no training) are left out; a job shared by
+norms-fixed network stands beside the paper's full model); reference rows (no training) and rows that use ground
+truth at test time (the CSV's ``oracle`` column) are left out; a job shared by
 several studies counts once (the label of the first CSV that holds it). Rows trained at different scales (image
 size, steps) are never compared: each scale of a dataset is its own series and front.
 (``python -m nvs.pareto`` writes ``results/pareto.md`` and ``.png`` from these.)
@@ -22,8 +23,9 @@ from nvs.report.png import figure_png
 # (column, label, True when larger is better), from the one metric specification
 ERRORS = tuple((m, SPECS[m].label, SPECS[m].higher_is_better) for m in ("l1", "ssim_paper"))
 COSTS = (("train_wall_s", "train wall time (s)"), ("eval_forward_ms_per_image", "eval forward ms / image"))
-# The studies whose rows are the paper's methods and ablations (the default inputs).
-PAPER_STUDIES = ("ablation", "comparison_objects", "comparison_drive")
+# The default inputs: the studies whose rows are the paper's methods and ablations, then the skip study's
+# configurations (plane depth, without conv0, lean) trained at the same scale.
+PAPER_STUDIES = ("ablation", "comparison_objects", "comparison_drive", "skip")
 
 
 def pareto_front(cost: list[float], error: list[float]) -> list[bool]:
@@ -56,6 +58,8 @@ def load_rows(csv_paths: list[Path]) -> pd.DataFrame:
         raise UserError("no sweep CSVs given (run python -m nvs.sweep sweeps/<study>.yaml first)")
     df = pd.concat(frames, ignore_index=True)
     df = df[(df["status"] == "done") & (df["kind"] == "train")].drop_duplicates("run_dir")
+    if "oracle" in df.columns:  # ground truth at test time (the oracle depth): an upper bound, not a configuration
+        df = df[df["oracle"].map(lambda v: str(v).strip().lower() not in ("true", "1"))]
     if df.empty:
         raise UserError("the sweep CSVs hold no finished trained jobs")
     for cost, _ in COSTS:

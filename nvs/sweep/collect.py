@@ -4,7 +4,8 @@ An evaluation with a route (``nvs.evaluate route=fit``) adds the share of test p
 one with ``time_sizes`` the forward time per image at each size (metrics.json's ``timing_by_size``: ``{"<S>":
 {network_ms_per_image, routed_ms_per_image?, speedup?, ...}}``), read as ``eval_<S>px_ms_per_image`` (the routed
 forward where there is a route, else the network's) and ``eval_<S>px_speedup``. The CSV has their columns only where
-some job has them, so a study without them writes the columns it always did.
+some job has them, so a study without them writes the columns it always did; likewise ``oracle`` (True on the jobs of a
+trained or evaluated row that uses ground truth at test time, e.g. the oracle depth, which ``nvs.pareto`` leaves out).
 """
 
 from __future__ import annotations
@@ -116,14 +117,16 @@ def collect(jobs: list[Job]) -> list[dict]:
             **{f"paper_{k}": j.row.paper.get(k) for k in METRICS},
             "stop": stop.get("outcome"), "stop_reason": stop.get("reason"),
             **{k: _num(test.get(k)) for k in ROUTE_SHARES}, **_timing(m),
+            # a trained or evaluated row that uses ground truth at test time (reference rows say so in their label)
+            "oracle": True if j.row.oracle and not j.row.reference else None,
             "dir": j.dir,  # not a CSV column: where the tables read the job's per-image results
         })
     return records
 
 
 def render_csv(records: list[dict]) -> str:
-    """The CSV: ``CSV_COLUMNS``, then the route shares and per-size times where some job has them."""
-    extra = [k for k in ROUTE_SHARES if any(r.get(k) is not None for r in records)]
+    """The CSV: ``CSV_COLUMNS``, then ``oracle``, the route shares and per-size times where some job has them."""
+    extra = [k for k in ("oracle", *ROUTE_SHARES) if any(r.get(k) is not None for r in records)]
     extra += [k for size in timed_sizes(records) for k in size_columns(size)]
     columns = CSV_COLUMNS + extra
     buf = io.StringIO()
