@@ -586,9 +586,9 @@ def test_pareto_never_puts_two_scales_on_one_front(fabricated, tmp_path):
 
 def test_pareto_reads_the_paper_studies_by_default(tmp_path):
     header = ",".join(sweep.CSV_COLUMNS) + "\n"
-    for name in ("ablation", "skip", "comparison_drive"):
+    for name in ("ablation", "skip", "fidelity", "comparison_drive"):
         (tmp_path / f"{name}.csv").write_text(header)
-    assert [p.name for p in pareto_lib.default_csvs(tmp_path)] == ["ablation.csv", "comparison_drive.csv"]
+    assert [p.name for p in pareto_lib.default_csvs(tmp_path)] == ["ablation.csv", "comparison_drive.csv", "skip.csv"]
 
 
 def test_unproject_inverts_the_projection():
