@@ -127,6 +127,28 @@ def test_bench_writes_report_with_consistent_numbers(tmp_path):
     assert "## 64², train batch 2, eval batch 1" in md and "| tatarchenko | bf16_cl |" in md and "Git SHA" in md
 
 
+def test_a_mode_slower_than_the_fastest_for_every_model_is_dropped_from_the_larger_sizes():
+    from nvs.bench.report import size_table
+    from nvs.bench.run import REFERENCE, slow_modes
+
+    def row(model, mode, ms):
+        t = {"median_ms": ms, "min_ms": ms, "max_ms": ms}
+        return {"model": model, "mode": mode, "params": 1e6, "train": t, "train_ms": ms, "train_samples_per_s": 1.0}
+
+    times = {("full", "fp32"): 2500, ("full", "cl"): 2300, ("full", "bf16_cl"): 25000,
+             ("chen", "fp32"): 310, ("chen", "cl"): 280, ("chen", "bf16_cl"): 3400, (REFERENCE, "fp32"): 100}
+    block = {"size": 64, "train_batch": 8, "eval_batch": 1,
+             "rows": {f"{m}/{mode}": row(m, mode, ms) for (m, mode), ms in times.items()}}
+    slow = slow_modes(block, 4.0)
+    assert list(slow) == ["bf16_cl"] and slow["bf16_cl"] == pytest.approx(25000 / 2300)  # the smaller ratio
+    assert slow_modes(block, 20.0) == {} and slow_modes(block, None) == {}
+    block["rows"]["chen/bf16_cl"]["train_ms"] = 300  # fast for one model: kept (the reference row does not count)
+    assert slow_modes(block, 4.0) == {}
+    block["dropped"] = {"modes": {"bf16_cl": 12.1}, "factor": 4.0}
+    assert "Not timed at the larger sizes: bf16_cl (its training step ≥ 12.1× the fastest mode's here, for every " \
+           "model); `drop_slower=4.0`." in "\n".join(size_table(block, {}))
+
+
 @pytest.mark.skipif(not rc.available(), reason=f"the authors' code is not at {rc.REFERENCE}")
 def test_reference_novel_view_is_their_forward_and_their_step_trains():
     from nvs.bench.contenders import make_batches

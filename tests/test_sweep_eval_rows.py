@@ -198,9 +198,41 @@ def test_the_key_hashes_the_evaluated_jobs_key_and_a_retrained_source_makes_it_s
     assert _jobs(study, root)["routed", 0].status == Status.DONE
     # the trained job done again under another config: its record (and digest) changes, the evaluation is stale
     record = json.loads((full.dir / JOB_RECORD).read_text())
-    (full.dir / JOB_RECORD).write_text(json.dumps({**record, "digest": "0123456789abcdef"}))
+    config = {**record["config"], "optim": {**record["config"]["optim"], "lr": 0.123}}
+    (full.dir / JOB_RECORD).write_text(json.dumps({**record, "digest": "0123456789abcdef", "config": config}))
     again = _jobs(study, root)["routed", 0]
     assert again.status == Status.STALE and "evaluates.trained" in sweep.stale_error(again)
+
+
+def test_an_evaluation_of_a_retrain_stays_done_beside_the_committed_record_of_the_same_config(tmp_path):
+    """A fresh clone has the trained job's committed record in an older spelling (another digest, a key added since
+    at its default) and the evaluation of a retrain of the same config, stamped with that retrain's digest."""
+    study = _study(tmp_path)
+    root = tmp_path / "runs" / study.scale
+    full = _jobs(study, root)["full", 0]
+    _train(full, root)
+    routed = _jobs(study, root)["routed", 0]
+    prepare_job_dir(routed, root)
+    _evaluate(routed)
+    exported = tmp_path / "exported"
+    for job in (full, routed):
+        (exported / job.dir.name).mkdir(parents=True)
+        for name in (JOB_RECORD, "metrics.json", "test_per_image.csv"):
+            (exported / job.dir.name / name).write_bytes((job.dir / name).read_bytes())
+    stamped = json.loads((routed.dir / JOB_RECORD).read_text())["config"]["evaluates"]["trained"]
+    assert stamped == full.digest
+    older = json.loads((full.dir / JOB_RECORD).read_text())
+    config = {**older["config"], "trainer": {k: v for k, v in older["config"]["trainer"].items() if k != "max_steps"}}
+    (exported / full.dir.name / JOB_RECORD).write_text(json.dumps({**older, "digest": "b036856f38562e14",
+                                                                   "config": config}))
+    fresh = _jobs(study, tmp_path / "fresh", exported=exported)
+    assert fresh["full", 0].status == Status.DONE and fresh["full", 0].dir == exported / full.dir.name
+    assert fresh["routed", 0].status == Status.DONE and fresh["routed", 0].dir == exported / routed.dir.name
+    # an evaluation stamped with neither digest is stale: it evaluated some other training
+    record = json.loads((exported / routed.dir.name / JOB_RECORD).read_text())
+    record["config"]["evaluates"]["trained"] = "ffffffffffffffff"
+    (exported / routed.dir.name / JOB_RECORD).write_text(json.dumps(record))
+    assert _jobs(study, tmp_path / "fresh", exported=exported)["routed", 0].status == Status.MISSING
 
 
 def test_a_committed_evaluation_stays_done_without_the_checkpoint_and_a_waiting_one_is_reported_missing(tmp_path):

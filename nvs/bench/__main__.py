@@ -94,7 +94,7 @@ def _profiles(cfg: DictConfig, device: torch.device) -> None:
 @exits_cleanly
 def main(cfg: DictConfig) -> None:
     from nvs.bench.report import markdown
-    from nvs.bench.run import bench_size
+    from nvs.bench.run import bench_size, slow_modes
 
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if cfg.threads is not None:
@@ -113,11 +113,17 @@ def main(cfg: DictConfig) -> None:
     name = device_slug(device)
     auto = choose("auto", "auto", device.type)
     print(auto.line(), flush=True)
+    modes = list(cfg.modes)
     for size, batch in pairs:
-        report["sizes"].append(bench_size(models, list(cfg.modes), size, batch, cfg.eval_batch, cfg.throughput_batch,
+        report["sizes"].append(bench_size(models, modes, size, batch, cfg.eval_batch, cfg.throughput_batch,
                                           cfg.warmup, cfg.repeats, device, cfg.paths.root_dir, reference,
                                           log=lambda msg: print(msg, flush=True)))
         report["sizes"][-1]["auto"] = {"mode": auto.mode, "reason": auto.reason, "probe_ms": auto.probe_ms}
+        slow = slow_modes(report["sizes"][-1], cfg.get("drop_slower"))
+        if slow:  # an emulated mode at 10x would cost the larger sizes hours and tell nothing new
+            report["sizes"][-1]["dropped"] = {"modes": slow, "factor": cfg.drop_slower}
+            modes = [m for m in modes if m not in slow]
+            print(f"{size}²: {', '.join(slow)} not timed at larger sizes (≥ {cfg.drop_slower}× the fastest mode)")
         write_json(f"{cfg.out_dir}/{name}.json", report)  # after every size: a long run keeps what it measured
         write_text(f"{cfg.out_dir}/{name}.md", markdown(report))
     print(f"wrote {cfg.out_dir}/{name}.json and .md")

@@ -45,6 +45,11 @@ def size_table(block: dict, peaks: dict) -> list[str]:
             f"{_f(row.get('train_gflop_per_sample'), '.1f')} | {_f(row.get('eval_gflop_per_image'), '.1f')} | "
             f"{_f(ach, '.0f')} | {_pct(ach, peaks, row['mode'])} | {_f(ach_eval, '.0f')} | "
             f"{_pct(ach_eval, peaks, row['mode'])} |")
+    dropped = block.get("dropped")
+    if dropped:
+        lines += ["", "Not timed at the larger sizes: " + ", ".join(
+            f"{m} (its training step ≥ {r:.1f}× the fastest mode's here, for every model)"
+            for m, r in dropped["modes"].items()) + f"; `drop_slower={dropped['factor']}`."]
     return lines + [""] + auto_lines(block)
 
 

@@ -108,6 +108,22 @@ def _derive(rows: dict[str, dict], train_batch: int) -> None:
             row["eval_achieved_gflops"] = row["eval_gflop_per_image"] / (row["eval_ms_per_image"] / 1e3)
 
 
+def slow_modes(block: dict, factor: float | None) -> dict[str, float]:
+    """The modes whose training step is at least ``factor`` times the fastest mode's for every model of a size's
+    block (an emulated bf16: ~10x), each with its smallest such ratio; {} without a factor."""
+    if not factor:
+        return {}
+    ratios: dict[str, list[float]] = {}
+    for model in dict.fromkeys(r["model"] for r in block["rows"].values() if r["model"] != REFERENCE):
+        timed = {r["mode"]: r["train_ms"] for r in block["rows"].values() if r["model"] == model and "train_ms" in r}
+        if len(timed) < 2:
+            continue
+        best = min(timed.values())
+        for mode, ms in timed.items():
+            ratios.setdefault(mode, []).append(ms / best)
+    return {m: min(v) for m, v in ratios.items() if min(v) >= factor}
+
+
 def versus_reference(rows: dict[str, dict], model: str = "full") -> dict[str, dict]:
     """The authors' code over each mode of ``model``: time, FLOPs and peak-memory ratios (> 1: nvs is ahead)."""
     ref = rows.get(f"{REFERENCE}/fp32")

@@ -20,7 +20,9 @@ Staleness. The fingerprint is ``conf/evaluate.yaml`` composed with the row's ove
 is a neutral key: it names a file of one machine), plus ``evaluates`` = {``key``: the evaluated job's key,
 ``trained``: the digest its ``sweep_job.json`` holds}. A finished evaluation goes stale by the rule of every job
 (``nvs.sweep.jobs``): an evaluate setting that changed, or an evaluated job trained again under another config
-(its record rewritten). One trained again under the same config (``--force``) is not seen: re-run the evaluation
+(its record rewritten). An evaluation whose ``trained`` is instead the digest of the evaluated job's config as
+composed today stays done while that job is done under a config that behaves the same (``accepted_stamp``): a
+committed record in an older spelling stands for a retrain here, whose evaluation stamped the retrain's digest. One trained again under the same config (``--force``) is not seen: re-run the evaluation
 row with ``--rows <name> --force``.
 """
 
@@ -57,3 +59,13 @@ def waiting_reason(source_dir: Path, source_done: bool) -> str:
 def source_stamp(source_key: str, source_record: dict | None) -> dict:
     """The fingerprint's ``evaluates`` entry: the evaluated job's key and the config digest its record holds."""
     return {"key": source_key, "trained": (source_record or {}).get("digest")}
+
+
+def accepted_stamp(stamp: dict, today: str | None, record: dict | None) -> dict:
+    """The ``evaluates`` entry to check an evaluation's ``record`` against: ``stamp`` (the evaluated job's record
+    digest), or the same with ``today`` -- the digest of the evaluated job's config composed now, given only where
+    that job is done (its record behaves as today's config) -- where the record holds that one."""
+    held = ((record or {}).get("config") or {}).get(EVALUATES)
+    if today and isinstance(held, dict) and held.get("key") == stamp["key"] and held.get("trained") == today:
+        return {**stamp, "trained": today}
+    return stamp

@@ -38,7 +38,7 @@ from nvs.run.compose import compose
 # the fingerprint's functions are also reachable here, where the sweep's other modules and the tests name them
 from nvs.sweep.fingerprint import (NEUTRAL_KEYS, SAME_BEHAVIOUR, config_changes, config_digest,  # noqa: F401
                                    config_fingerprint)
-from nvs.sweep.eval_rows import EVALUATES, source_stamp, waiting_reason
+from nvs.sweep.eval_rows import EVALUATES, accepted_stamp, source_stamp, waiting_reason
 from nvs.sweep.recorded import as_today
 from nvs.sweep.recorder import FAILED, STDERR
 from nvs.sweep.study import Row, Study, row_seeds
@@ -208,14 +208,19 @@ def plan(study: Study, root: str | Path, extra: tuple[str, ...] = (), exported: 
             job = Job(study=study.name, row=row, seed=seed, dir=root / f"{row.run}_s{seed}", overrides=overrides,
                       key=job_key(row.kind, overrides, seed, src and src.key), fingerprint=config_fingerprint(cfg),
                       data=str(cfg.data.get("name") or (src.data if src else row.data)), source=src)
+            stamp = today = None
             if src is not None:
-                job.fingerprint[EVALUATES] = source_stamp(src.key, read_json(src.dir / JOB_RECORD))
+                stamp = source_stamp(src.key, read_json(src.dir / JOB_RECORD))
+                today = config_digest(src.fingerprint) if src.status == Status.DONE else None
+                job.fingerprint[EVALUATES] = accepted_stamp(stamp, today, read_json(job.dir / JOB_RECORD))
                 job.waiting = waiting_reason(src.dir, src.status == Status.DONE)
             refresh(job)
             if job.status != Status.DONE and exported is not None:
                 there = Path(exported) / job.dir.name
-                if job_status(there, job.key, job.fingerprint)[0] == Status.DONE:
-                    job.dir, job.status, job.error = there, Status.DONE, ""
+                fingerprint = job.fingerprint if stamp is None else {
+                    **job.fingerprint, EVALUATES: accepted_stamp(stamp, today, read_json(there / JOB_RECORD))}
+                if job_status(there, job.key, fingerprint)[0] == Status.DONE:
+                    job.dir, job.status, job.error, job.fingerprint = there, Status.DONE, "", fingerprint
             by_row[row.name].append(job)
     return [j for row in study.rows for j in by_row[row.name]]
 
