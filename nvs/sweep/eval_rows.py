@@ -22,8 +22,9 @@ is a neutral key: it names a file of one machine), plus ``evaluates`` = {``key``
 (``nvs.sweep.jobs``): an evaluate setting that changed, or an evaluated job trained again under another config
 (its record rewritten). An evaluation whose ``trained`` is instead the digest of the evaluated job's config as
 composed today stays done while that job is done under a config that behaves the same (``accepted_stamp``): a
-committed record in an older spelling stands for a retrain here, whose evaluation stamped the retrain's digest. One trained again under the same config (``--force``) is not seen: re-run the evaluation
-row with ``--rows <name> --force``.
+committed record in an older spelling stands for a retrain here, whose evaluation stamped the retrain's digest.
+One trained again under the same config (``--force``) is not seen: re-run the evaluation row with
+``--rows <name> --force``.
 """
 
 from __future__ import annotations
