@@ -228,7 +228,7 @@ def test_an_evaluation_of_a_retrain_stays_done_beside_the_committed_record_of_th
     fresh = _jobs(study, tmp_path / "fresh", exported=exported)
     assert fresh["full", 0].status == Status.DONE and fresh["full", 0].dir == exported / full.dir.name
     assert fresh["routed", 0].status == Status.DONE and fresh["routed", 0].dir == exported / routed.dir.name
-    # an evaluation stamped with neither digest is stale: it evaluated some other training
+    # an evaluation stamped with neither digest is not taken from the committed files: it evaluated another training
     record = json.loads((exported / routed.dir.name / JOB_RECORD).read_text())
     record["config"]["evaluates"]["trained"] = "ffffffffffffffff"
     (exported / routed.dir.name / JOB_RECORD).write_text(json.dumps(record))
