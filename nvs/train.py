@@ -14,7 +14,6 @@ from nvs.run.artifacts import existing_files, is_global_zero, summary_line
 from nvs.run.cli import before_hydra, exits_cleanly, hydra_task
 from nvs.run.compose import CONF_DIR
 from nvs.run.overrides import trainer_arguments
-from nvs.run.training import run
 
 
 def main_cli() -> None:
@@ -55,6 +54,8 @@ def main(cfg: DictConfig) -> None:
     existing = existing_files(out_dir)  # the user's files there (and Hydra's, written before main): never removed
     with hydra_task("train", cfg, existing):
         OmegaConf.resolve(cfg)
+    from nvs.run.training import run  # Lightning is imported once the config is known good (seconds on a small CPU)
+
     result = run(cfg, out_dir, keep_unstarted=keep, existing=existing)
     if not is_global_zero():
         return

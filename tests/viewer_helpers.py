@@ -24,7 +24,7 @@ def built_net(tmp_path, *overrides: str):
 
 def one_step_checkpoint(objects_root, out: Path, *overrides: str) -> Path:
     """Train the default model one step on the fixture objects into ``out``; returns ``out/checkpoints/last.ckpt``."""
-    from nvs.train import run
+    from nvs.run.training import run
 
     cfg = compose_train([f"data.root={objects_root}", f"paths.log_dir={out}", "trainer.max_steps=1",
                          "trainer.val_check_interval=1", "trainer.limit_val_batches=1", "data.loader.batch_size=2",

@@ -36,6 +36,9 @@ def trainer_arguments(argv: Sequence[str], conf_dir: str | Path = CONF_DIR) -> l
     Trainer) that the file does not list rewritten to ``++trainer.<arg>=v``, so every Trainer argument is set without
     '+'. Any other ``trainer.<key>=v`` is left to fail composing, as an unknown key (``nvs.train.check_composes``)."""
     trainer = OmegaConf.load(Path(conf_dir) / "trainer" / "default.yaml")
+    asked = {arg.split("=", 1)[0].removeprefix("trainer.") for arg in argv if arg.startswith("trainer.")}
+    if not asked - set(trainer):
+        return list(argv)  # nothing to rewrite: the Trainer's signature (importing Lightning, seconds) is not read
     schema = component_schema(str(trainer.get("_target_", "lightning.pytorch.Trainer")))
     known = set(schema.names) - set(trainer) - set(RESERVED) if schema else set()
     return [f"++{arg}" if arg.split("=", 1)[0].removeprefix("trainer.") in known and arg.startswith("trainer.")
