@@ -21,8 +21,8 @@ make_scenes_root = write_scenes_root
 
 
 def pytest_configure(config):
-    # `make test` runs two pytest-xdist workers, one per core: each computes with one thread (and so do the command
-    # lines it starts), so that the two never oversubscribe the cores.
+    # `make test` runs three pytest-xdist workers on two cores: each computes with one thread (and so do the command
+    # lines it starts), so that the cores are shared by whole workers, never by thread pools fighting inside one.
     if os.environ.get("PYTEST_XDIST_WORKER"):
         os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = "1"
         torch.set_num_threads(1)
