@@ -21,8 +21,8 @@ demo: setup
 
 # Three one-thread workers on the two cores: much of the suite waits on the command lines it starts (imports, a
 # server's start, a polled file), and a third worker fills that time; on the AVX2-only 2-core EPYC the suite took
-# 507 s with 3 workers against 605 s with 2 (same tree, same machine). TEST_WORKERS=0 runs in this process, as a
-# debugger wants.
+# 507 s with 3 workers against 605 s with 2 (same machine; the 2-worker run lacked the viewer's ~13 s of tests, which
+# errored on an import since fixed). TEST_WORKERS=0 runs in this process, as a debugger wants.
 TEST_WORKERS ?= 3
 
 test: setup
