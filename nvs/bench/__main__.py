@@ -85,9 +85,27 @@ def _profiles(cfg: DictConfig, device: torch.device) -> None:
                             warmup=cfg.warmup + 1, steps=cfg.repeats)
         head = header(command_line("nvs.bench"), device, threads=torch.get_num_threads())
         suffix = "" if model == "full" else f"_{model}"
-        path = f"{cfg.out_dir}/profile_{device_slug(device)}_{size}{suffix}.md"
-        write_text(path, markdown(head, prof))
-        print(f"wrote {path}")
+        stem = f"{cfg.out_dir}/profile_{device_slug(device)}_{size}{suffix}"
+        write_text(f"{stem}.md", markdown(head, prof))
+        write_json(f"{stem}.json", {"header": head, "model": model, **{k: v for k, v in prof.items() if k != "ops"},
+                                    "ops": prof["ops"][:60]})
+        print(f"wrote {stem}.md and .json")
+
+
+def profile_shares(out_dir: str, slug: str) -> dict[str, dict]:
+    """{"size/model/mode": {"matmul_conv_share", "file"}} of the profiles beside a report (what bounds a goal)."""
+    import json
+    from pathlib import Path
+
+    shares = {}
+    for path in sorted(Path(out_dir).glob(f"profile_{slug}_*.json")):
+        try:
+            prof = json.loads(path.read_text())
+            shares[f"{prof['size']}/{prof['model']}/{prof['mode']}"] = {
+                "matmul_conv_share": float(prof["matmul_conv_share"]), "file": path.name}
+        except (OSError, ValueError, KeyError, TypeError):
+            print(f"{path}: not a profile this bench wrote; ignored", file=sys.stderr)
+    return shares
 
 
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="bench")
@@ -106,11 +124,11 @@ def main(cfg: DictConfig) -> None:
     head = header(command_line("nvs.bench"), device, iso=True, threads=torch.get_num_threads(),
                   python=sys.version.split()[0], reference=reference or "not timed (reference=<path> times it)",
                   repeats=cfg.repeats, warmup=cfg.warmup)
-    report = {"header": head, "sizes": []}
+    name = device_slug(device)
+    report = {"header": head, "sizes": [], "profiles": profile_shares(cfg.out_dir, name)}
     if cfg.measure_peak:
         report["peak"] = measure.machine_peak(device)
         print(f"peak: {report['peak']}", flush=True)
-    name = device_slug(device)
     auto = choose("auto", "auto", device.type)
     print(auto.line(), flush=True)
     modes = list(cfg.modes)

@@ -17,6 +17,14 @@ from nvs.core.provenance import markdown as provenance_markdown
 _CONVERSIONS = ("aten::to", "aten::_to_copy", "aten::to_dtype", "aten::_autocast_to_reduced_precision",
                 "aten::_autocast_to_full_precision")
 _CLONES = ("aten::clone", "aten::contiguous")
+_MATMULS = ("aten::mm", "aten::addmm", "aten::bmm", "aten::baddbmm", "aten::matmul", "aten::linear")
+
+
+def is_matmul_or_conv(name: str) -> bool:
+    """The operators whose FLOPs ``torch.utils.flop_counter`` counts: convolutions (forward, backward, and the
+    dispatch above their kernels) and matmuls."""
+    low = name.split("::")[-1].lower()
+    return any(t in low for t in ("convolution", "conv2d", "conv_")) or name in _MATMULS
 
 
 def _copy_kind(evt) -> tuple[str, str]:
@@ -53,9 +61,11 @@ def profile_step(overrides: list[str], mode: str, size: int, batch: int, device:
             copies[kind] = copies.get(kind, 0.0) + ms
             callers[kind, caller] = callers.get((kind, caller), 0.0) + ms
     total = sum(v[0] for v in ops.values())
+    counted = sum(v[0] for k, v in ops.items() if is_matmul_or_conv(k))
     ranked = sorted(((k, v[0], v[1]) for k, v in ops.items()), key=lambda x: -x[1])
     return {"size": size, "batch": batch, "mode": mode, "overrides": list(overrides), "steps": steps,
-            "total_ms": total, "wall_ms": wall.get("median_ms"), "ops": ranked, "copies": copies,
+            "total_ms": total, "wall_ms": wall.get("median_ms"), "matmul_conv_share": counted / total if total else 0.0,
+            "ops": ranked, "copies": copies,
             "copy_callers": sorted(((k, c, ms) for (k, c), ms in callers.items()), key=lambda x: -x[2])}
 
 
@@ -66,7 +76,9 @@ def markdown(head: dict, prof: dict, top: int = 30) -> str:
              f"`torch.profiler` over {prof['steps']} steps after warm-up (model overrides: "
              f"`{' '.join(prof['overrides']) or 'none (the full model)'}`); self CPU time per step summed over "
              f"every operator: **{total:.0f} ms** (profiler overhead included); the same step without the profiler: "
-             f"{prof['wall_ms']:.0f} ms (median of {prof['steps']}, after the warm-up).", "",
+             f"{prof['wall_ms']:.0f} ms (median of {prof['steps']}, after the warm-up). Convolutions and matmuls (the "
+             f"operators whose FLOPs the bench counts) take **{100 * prof['matmul_conv_share']:.0f}%** of the self "
+             "time, everything else the rest.", "",
              "## Copies and dtype casts (self time of `aten::copy_`, by the operator that asked for it)", "",
              "| kind | ms/step | share of step |", "|---|---:|---:|"]
     for kind, ms in sorted(prof["copies"].items(), key=lambda x: -x[1]):

@@ -114,9 +114,10 @@ def reference_table(block: dict, model: str = "full") -> list[str]:
                     "fewer FLOPs, needs less memory).", ""]
 
 
-def markdown(report: dict) -> str:
+def markdown(report: dict, rendered: str | None = None) -> str:
+    """The report as Markdown; ``rendered``: a line saying the text was rendered again from the report's JSON."""
     h = report["header"]
-    lines = [f"# Benchmark on {h['device']}", "", provenance_markdown(h), ""]
+    lines = [f"# Benchmark on {h['device']}", "", provenance_markdown(h), ""] + ([rendered, ""] if rendered else [])
     p = report.get("peak") or {}
     if "bf16_conv3x3_gflops" in p:  # reports from before the fp32 peaks
         p = {"bf16_matmul_gflops": p["bf16_matmul_gflops"], "bf16_conv_cl_gflops": p["bf16_conv3x3_gflops"]}
@@ -171,3 +172,61 @@ def accuracy_section(csv_path: Path, tolerance: float = 0.02) -> list[str]:
         f"| bf16 + channels_last | {l1_fast:.4f} | {fast['ssim_paper'].mean():.4f} | "
         f"{fast['train_wall_s'].mean():.0f} |", "",
         f"Relative L1 difference {100 * rel:+.1f}%: {verdict} the {100 * tolerance:.0f}% goal."]
+
+
+def _run_order(command: str, row: dict) -> tuple[int, int]:
+    """A row's place in the bench run that timed it: its model in ``only=[...]`` (else conf/bench.yaml's models),
+    the authors' code last; its mode in MODES' order."""
+    import re
+
+    from omegaconf import OmegaConf
+
+    from nvs.bench.contenders import MODES
+    from nvs.run.compose import CONF_DIR
+
+    only = re.search(r"only=\[([^\]]*)\]", command)
+    models = ([m.strip() for m in only.group(1).split(",")] if only else
+              list(OmegaConf.load(CONF_DIR / "bench.yaml").models))
+    model = models.index(row["model"]) if row["model"] in models else len(models) + (row["model"] == REFERENCE)
+    return model, list(MODES).index(row["mode"]) if row["mode"] in MODES else len(MODES)
+
+
+def rerender(json_path: Path) -> Path:
+    """Write ``<report>.md`` again from ``<report>.json`` with this checkout's report code (its goal lines, and the
+    profiles that lie beside it now); the measurements and their header stay those of the bench run."""
+    import json
+
+    from nvs.bench.__main__ import profile_shares
+    from nvs.core.atomic import write_text
+    from nvs.core.errors import UserError
+    from nvs.core.provenance import git_sha
+
+    try:
+        report = json.loads(json_path.read_text())
+        report["header"], report["sizes"]
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise UserError(f"{json_path}: not a bench report ({err.__class__.__name__}: {err})") from None
+    first = ("command", "git_sha", "date", "device", "torch", "threads")  # the header's order as the bench wrote it
+    h = report["header"]
+    report["header"] = {**{k: h[k] for k in first if k in h}, **{k: v for k, v in h.items() if k not in first}}
+    report["profiles"] = {**report.get("profiles", {}), **profile_shares(str(json_path.parent), json_path.stem)}
+    for block in report["sizes"]:  # the JSON keeps its keys sorted: the rows again in the run's order
+        block["rows"] = dict(sorted(block["rows"].items(), key=lambda kv: _run_order(h.get("command", ""), kv[1])))
+    out = json_path.with_suffix(".md")
+    write_text(out, markdown(report, rendered=f"Text rendered again from `{json_path.name}` by `python -m "
+                                              f"nvs.bench.report` at `{git_sha()}`; the numbers are the run's above."))
+    return out
+
+
+if __name__ == "__main__":
+    import sys
+
+    from nvs.core.errors import UserError
+
+    if len(sys.argv) < 2 or any(a.startswith("-") for a in sys.argv[1:]):
+        sys.exit("usage: python -m nvs.bench.report <report.json> [...]: writes each <report>.md again")
+    try:
+        for arg in sys.argv[1:]:
+            print(f"wrote {rerender(Path(arg))}")
+    except UserError as err:
+        sys.exit(str(err))
