@@ -84,7 +84,9 @@ def _profiles(cfg: DictConfig, device: torch.device) -> None:
         prof = profile_step(list(cfg.models[model]), cfg.profile_mode, size, batch, device, cfg.paths.root_dir,
                             warmup=cfg.warmup + 1, steps=cfg.repeats)
         head = header(command_line("nvs.bench"), device, threads=torch.get_num_threads())
-        suffix = "" if model == "full" else f"_{model}"
+        # bf16_cl, the first mode profiled, keeps the names of the reports committed before the others
+        mode = "" if cfg.profile_mode == "bf16_cl" else f"_{cfg.profile_mode}"
+        suffix = ("" if model == "full" else f"_{model}") + mode
         stem = f"{cfg.out_dir}/profile_{device_slug(device)}_{size}{suffix}"
         write_text(f"{stem}.md", markdown(head, prof))
         write_json(f"{stem}.json", {"header": head, "model": model, **{k: v for k, v in prof.items() if k != "ops"},
