@@ -101,6 +101,10 @@ def test_profile_sums_copies_and_ranks_operators():
     assert prof["copies"] and all(v >= 0 for v in prof["copies"].values())
     # autocast casts the fp32 weights and inputs to bf16: conversions are among the copies
     assert any(k.startswith("dtype/layout") for k in prof["copies"])
+    # the share the goals read: the counted operators' self time over the step's
+    kernels = ("aten::convolution_backward", "aten::mkldnn_convolution")
+    counted = sum(ms for name, ms, _ in prof["ops"] if name in kernels)
+    assert counted / prof["total_ms"] <= prof["matmul_conv_share"] < 1
     text = markdown({"command": "x"}, prof)
     assert "| **all copies** |" in text and "## Top 30 operators by self time" in text
 
