@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from nvs.bench.goals import goal_lines, ratio_bound, share_bound
+from nvs.bench.goals import goal_lines, profile_shares, ratio_bound, share_bound
 from nvs.bench.profile import is_matmul_or_conv
 
 
@@ -63,8 +63,6 @@ def test_goal_lines_say_why_each_missed_goal_is_missed_and_nothing_after_a_met_o
 
 
 def test_profiles_beside_a_report_are_read_by_size_model_and_mode_and_a_stray_file_is_ignored(tmp_path, capsys):
-    from nvs.bench.__main__ import profile_shares
-
     prof = {"size": 64, "model": "full_vgg_native", "mode": "fp32", "matmul_conv_share": 0.8}
     (tmp_path / "profile_cpu-x_64_full_vgg_native.json").write_text(json.dumps(prof))
     (tmp_path / "profile_cpu-x_128.json").write_text("{not json")
@@ -87,7 +85,7 @@ def test_a_committed_report_renders_again_with_its_numbers_and_the_missed_goals_
     import shutil
     from pathlib import Path
 
-    from nvs.bench.report import rerender
+    from nvs.bench.rerender import rerender
     from nvs.core.errors import UserError
 
     src = Path(__file__).resolve().parents[1] / "results/bench/avx2-256/cpu--amd-epyc-no-native-bf16.json"

@@ -370,18 +370,12 @@ def test_plain_skips_need_no_depth_for_the_skips():
 
 # -- a short real run -----------------------------------------------------------------------------------------------
 def test_short_run_reports_step_time_and_skipped_warps(objects_root, tmp_path):
-    import json
-    import subprocess
-    import sys
+    from tests.run_helpers import train_in_process
 
     steps = 7  # the step-time median leaves out the first 5 steps
-    res = subprocess.run([sys.executable, "-m", "nvs.train", f"data.root={objects_root}", f"paths.log_dir={tmp_path}",
-                          "trainer.enable_progress_bar=false", f"trainer.max_steps={steps}", "trainer.val_check_interval=7",
-                          "data.loader.batch_size=2", "loss=[recon,depth_consistency]", "model/skips=adaptive",
-                          "model/depth=plane"],
-                         cwd=Path(__file__).resolve().parents[1], capture_output=True, text=True, timeout=600)
-    assert res.returncode == 0, res.stderr[-3000:]
-    m = json.loads(next(tmp_path.rglob("metrics.json")).read_text())
+    m = train_in_process(objects_root, tmp_path, f"trainer.max_steps={steps}", "trainer.val_check_interval=7",
+                         "data.loader.batch_size=2", "loss=[recon,depth_consistency]", "model/skips=adaptive",
+                         "model/depth=plane")
     assert m["steps"] == steps and 0 < m["train_step_ms"] < 1000 * m["train_wall_s"]
     # The fixture's test pairs turn by 20 degrees: every warp moves pixels by more than 0.5 px, nothing is skipped.
     assert m["test"]["warp_skipped"] == 0.0 and m["test"]["warp_skipped_conv4"] == 0.0

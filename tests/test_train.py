@@ -13,6 +13,7 @@ from nvs.models.reference import REFERENCE_MODELS
 from nvs.run.build import build_module, parameter_count
 from nvs.run.config_check import check_config
 from tests.conftest import CONF_DIR, compose_train, fixture_batch
+from tests.run_helpers import train_in_process
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -191,9 +192,8 @@ def _evaluate(tmp_path, *args):
 
 
 def test_evaluate_checkpoint_and_reference_models(objects_root, tmp_path):
-    res = _train(objects_root, tmp_path / "t", "trainer.max_steps=2", "trainer.val_check_interval=2",
-                 "data.loader.batch_size=2", "loss=[recon]", "test=false")
-    assert res.returncode == 0, res.stderr[-3000:]
+    train_in_process(objects_root, tmp_path / "t", "trainer.max_steps=2", "trainer.val_check_interval=2",
+                     "data.loader.batch_size=2", "loss=[recon]", "test=false")
     ckpt = next((tmp_path / "t").rglob("last.ckpt"))
     out = tmp_path / "e"
     res = _evaluate(tmp_path, f"ckpt_path={ckpt}", f"out_dir={out}", "data=chairs", f"data.root={objects_root}")
@@ -335,12 +335,9 @@ def test_the_configured_adam_is_fused_and_steps_like_the_per_parameter_loop(tmp_
 def test_a_run_shorter_than_val_check_interval_still_tests_a_validation_checkpoint(objects_root, tmp_path):
     """max_steps=3 under the default val_check_interval=500: the run validates at its last step and tests that
     checkpoint; without any validation, metrics.json says the final weights were tested."""
-    res = _train(objects_root, tmp_path / "a", "trainer.max_steps=3", "data.loader.batch_size=2", "loss=[recon]")
-    assert res.returncode == 0, res.stderr[-3000:]
-    m = json.loads(next((tmp_path / "a").rglob("metrics.json")).read_text())
+    m = train_in_process(objects_root, tmp_path / "a", "trainer.max_steps=3", "data.loader.batch_size=2",
+                         "loss=[recon]")
     assert m["checkpoint"].endswith("best-3.ckpt") and m["tested_weights"] == "best validation checkpoint"
-    res = _train(objects_root, tmp_path / "b", "trainer.max_steps=2", "data.loader.batch_size=2", "loss=[recon]",
-                 "trainer.limit_val_batches=0")
-    assert res.returncode == 0, res.stderr[-3000:]
-    m = json.loads(next((tmp_path / "b").rglob("metrics.json")).read_text())
+    m = train_in_process(objects_root, tmp_path / "b", "trainer.max_steps=2", "data.loader.batch_size=2",
+                         "loss=[recon]", "trainer.limit_val_batches=0")
     assert m["checkpoint"] is None and m["tested_weights"] == "final weights (step 2)"

@@ -14,6 +14,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from nvs.bench.contenders import MODES
+from nvs.bench.goals import profile_shares
 import nvs.bench.measure as measure
 from nvs.bench.reference import check_path
 from nvs.core.atomic import write_json, write_text
@@ -92,22 +93,6 @@ def _profiles(cfg: DictConfig, device: torch.device) -> None:
         write_json(f"{stem}.json", {"header": head, "model": model, **{k: v for k, v in prof.items() if k != "ops"},
                                     "ops": prof["ops"][:60]})
         print(f"wrote {stem}.md and .json")
-
-
-def profile_shares(out_dir: str, slug: str) -> dict[str, dict]:
-    """{"size/model/mode": {"matmul_conv_share", "file"}} of the profiles beside a report (what bounds a goal)."""
-    import json
-    from pathlib import Path
-
-    shares = {}
-    for path in sorted(Path(out_dir).glob(f"profile_{slug}_*.json")):
-        try:
-            prof = json.loads(path.read_text())
-            shares[f"{prof['size']}/{prof['model']}/{prof['mode']}"] = {
-                "matmul_conv_share": float(prof["matmul_conv_share"]), "file": path.name}
-        except (OSError, ValueError, KeyError, TypeError):
-            print(f"{path}: not a profile this bench wrote; ignored", file=sys.stderr)
-    return shares
 
 
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="bench")

@@ -10,6 +10,10 @@ the same step is at hand (``python -m nvs.bench profile=[64] profile_mode=fp32``
 
 from __future__ import annotations
 
+import json
+import sys
+from pathlib import Path
+
 from nvs.bench.measure import MODE_PEAK
 from nvs.bench.run import REFERENCE, versus_reference
 
@@ -172,3 +176,16 @@ def _versus_authors(block: dict, peaks: dict) -> list[str]:
                                            their_peak, VIEW_VS_AUTHORS)
             out.append(line)
     return out
+
+
+def profile_shares(out_dir: str, slug: str) -> dict[str, dict]:
+    """{"size/model/mode": {"matmul_conv_share", "file"}} of the profiles beside a report (what bounds a goal)."""
+    shares = {}
+    for path in sorted(Path(out_dir).glob(f"profile_{slug}_*.json")):
+        try:
+            prof = json.loads(path.read_text())
+            shares[f"{prof['size']}/{prof['model']}/{prof['mode']}"] = {
+                "matmul_conv_share": float(prof["matmul_conv_share"]), "file": path.name}
+        except (OSError, ValueError, KeyError, TypeError):
+            print(f"{path}: not a profile this bench wrote; ignored", file=sys.stderr)
+    return shares
