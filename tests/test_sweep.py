@@ -716,10 +716,11 @@ def test_sigterm_to_the_sweep_stops_its_running_job(tmp_path):
         "    sys.exit(130)\n")
     # PYTHONPATH: the script lives outside the checkout, so the checkout is not on its path otherwise
     proc = subprocess.Popen([sys.executable, str(script)], cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
-    for _ in range(200):
-        if pid_file.exists() and pid_file.read_text():
-            break
+    # the runner imports nvs.sweep and starts its child: seconds on a loaded 2-core machine (10 s ran out there)
+    deadline = time.monotonic() + 120
+    while not (pid_file.exists() and pid_file.read_text()) and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.05)
+    assert pid_file.exists() and pid_file.read_text(), f"the job never started (runner exit code {proc.poll()})"
     child = int(pid_file.read_text())
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(timeout=20) == 130
