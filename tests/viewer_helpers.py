@@ -7,6 +7,7 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from tests.conftest import compose_train
+from tests.run_helpers import train_in_process
 
 
 def built_net(tmp_path, *overrides: str):
@@ -24,13 +25,7 @@ def built_net(tmp_path, *overrides: str):
 
 def one_step_checkpoint(objects_root, out: Path, *overrides: str) -> Path:
     """Train the default model one step on the fixture objects into ``out``; returns ``out/checkpoints/last.ckpt``."""
-    from nvs.run.training import run
-
-    cfg = compose_train([f"data.root={objects_root}", f"paths.log_dir={out}", "trainer.max_steps=1",
-                         "trainer.val_check_interval=1", "trainer.limit_val_batches=1", "data.loader.batch_size=2",
-                         "data.loader.eval_batch_size=2", "loss=[recon]", "test=false",
-                         "trainer.enable_progress_bar=false", *overrides])
-    cfg.paths.output_dir = str(out)
-    OmegaConf.resolve(cfg)
-    run(cfg, out)
+    train_in_process(objects_root, out, "trainer.max_steps=1", "trainer.val_check_interval=1",
+                     "trainer.limit_val_batches=1", "data.loader.batch_size=2", "data.loader.eval_batch_size=2",
+                     "loss=[recon]", "test=false", *overrides)
     return out / "checkpoints" / "last.ckpt"

@@ -5,7 +5,8 @@ What bounds a goal is computed from the report's own numbers: the FLOPs of the s
 its time, and the machine's measured peak of the row's mode. A goal that needs more than the peak allows is bounded by
 the arithmetic of this machine; one within it is bounded by how far the step runs below the peak. Where a profile of
 the same step is at hand (``python -m nvs.bench profile=[64] profile_mode=fp32``, which writes
-``profile_<device>_<size>[_<model>].json``), the time the step spends outside convolutions and matmuls is read from it.
+``profile_<device>_<size>[_<model>][_<mode>].json``), the time the step spends outside convolutions and matmuls is
+read from it.
 """
 
 from __future__ import annotations
@@ -122,7 +123,8 @@ def goal_lines(report: dict) -> list[str]:
                 row = rows.get(mode, {})
                 ach = row.get("train_achieved_gflops")
                 if ach:
-                    share, ok = ach / peak_cl, ach / peak_cl >= FP32_64_OF_CL_PEAK
+                    share = ach / peak_cl
+                    ok = share >= FP32_64_OF_CL_PEAK
                     line = (f"- 64², {model} {mode} training step: {ach:.0f} GFLOP/s = {100 * share:.0f}% of the "
                             f"fp32 channels_last conv peak ({peak_cl:.0f}); goal ≥ {100 * FP32_64_OF_CL_PEAK:.0f}%: "
                             f"{_mark(ok)}")

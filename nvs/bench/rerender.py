@@ -21,14 +21,19 @@ from nvs.core.provenance import git_sha
 from nvs.run.compose import CONF_DIR
 
 
-def _run_order(command: str, row: dict) -> tuple[int, int]:
-    """A row's place in the bench run that timed it: its model in ``only=[...]`` (else conf/bench.yaml's models),
-    the authors' code last; its mode in MODES' order."""
+def _run_order(command: str):
+    """-> key(row): a row's place in the bench run that timed it: its model in ``only=[...]`` (else conf/bench.yaml's
+    models), the authors' code last; its mode in MODES' order."""
     only = re.search(r"only=\[([^\]]*)\]", command)
     models = ([m.strip() for m in only.group(1).split(",")] if only else
               list(OmegaConf.load(CONF_DIR / "bench.yaml").models))
-    model = models.index(row["model"]) if row["model"] in models else len(models) + (row["model"] == REFERENCE)
-    return model, list(MODES).index(row["mode"]) if row["mode"] in MODES else len(MODES)
+    modes = list(MODES)
+
+    def key(row: dict) -> tuple[int, int]:
+        model = models.index(row["model"]) if row["model"] in models else len(models) + (row["model"] == REFERENCE)
+        return model, modes.index(row["mode"]) if row["mode"] in modes else len(modes)
+
+    return key
 
 
 def rerender(json_path: Path) -> Path:
@@ -43,8 +48,9 @@ def rerender(json_path: Path) -> Path:
     h = report["header"]
     report["header"] = {**{k: h[k] for k in first if k in h}, **{k: v for k, v in h.items() if k not in first}}
     report["profiles"] = {**report.get("profiles", {}), **profile_shares(str(json_path.parent), json_path.stem)}
+    order = _run_order(h.get("command", ""))
     for block in report["sizes"]:  # the JSON keeps its keys sorted: the rows again in the run's order
-        block["rows"] = dict(sorted(block["rows"].items(), key=lambda kv: _run_order(h.get("command", ""), kv[1])))
+        block["rows"] = dict(sorted(block["rows"].items(), key=lambda kv: order(kv[1])))
     out = json_path.with_suffix(".md")
     line = (f"Text rendered again from `{json_path.name}` by `python -m nvs.bench.rerender` at `{git_sha()}`; the "
             "numbers are the run's above.")
