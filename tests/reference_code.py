@@ -48,3 +48,17 @@ def cuda_is_identity():
         yield
     finally:
         torch.Tensor.cuda = orig
+
+
+@contextlib.contextmanager
+def losses_only():
+    """The code's training step without its gradients: its forward under no_grad (train-mode BatchNorm still uses and
+    updates the batch statistics) and ``backward()`` a no-op, for a test that compares outputs and loss terms only
+    (the backward at 256² is most of the step's time)."""
+    orig = torch.Tensor.backward
+    torch.Tensor.backward = lambda self, *a, **k: None
+    try:
+        with torch.no_grad():
+            yield
+    finally:
+        torch.Tensor.backward = orig

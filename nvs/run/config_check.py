@@ -16,7 +16,9 @@ import copy
 import dataclasses
 import difflib
 import enum
+import functools
 import re
+import types
 import typing
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -47,8 +49,17 @@ def _unwrap(kind: Any) -> tuple[Any, bool]:
     return kind, kind is Any
 
 
-def _fields(schema: type) -> dict[str, Any]:
-    return typing.get_type_hints(schema)
+@functools.lru_cache(maxsize=None)  # per schema: a study's plan checks dozens of configs
+def _fields(schema: type) -> Mapping[str, Any]:
+    return types.MappingProxyType(typing.get_type_hints(schema))
+
+
+@functools.lru_cache(maxsize=None)
+def _structured(schema: type, open_: bool) -> DictConfig:
+    base = OmegaConf.structured(schema)  # made once: OmegaConf.merge copies its first argument, never edits it
+    if open_:
+        OmegaConf.set_struct(base, False)
+    return base
 
 
 def _declared(schema: type, parts: Sequence[str | int]) -> Any:
@@ -120,15 +131,14 @@ def _is_interpolation(value: Any) -> bool:
 
 def _merge_problems(data: dict, schema: type, prefix: str, open_: bool, unknown: str) -> list[Problem]:
     """Every key of ``data`` OmegaConf refuses to merge into ``schema`` (``open_``: other keys are allowed)."""
-    base = OmegaConf.structured(schema)
-    if open_:
-        OmegaConf.set_struct(base, False)
-    data, out = copy.deepcopy(data), []
+    base, out, copied = _structured(schema, open_), [], False
     for _ in range(100):  # one key dropped per round
         try:
             OmegaConf.merge(base, data)
             break
         except (ValidationError, ConfigKeyError) as err:
+            if not copied:  # the refused keys are dropped from a copy: the caller's data stays as it was
+                data, copied = copy.deepcopy(data), True
             parts = _parts(str(err.full_key))
             if isinstance(err, ConfigKeyError) and not isinstance(err, ValidationError):
                 names = list(_fields(_unwrap(_declared(schema, parts[:-1]))[0]))

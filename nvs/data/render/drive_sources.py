@@ -3,6 +3,7 @@ SuperTuxKart sources, and the `sources=` option (which sources, how many sequenc
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Callable
 
@@ -58,13 +59,24 @@ def panorama_sky(panorama: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
     return sky
 
 
+@functools.lru_cache(maxsize=64)
+def _track_centre_line(acc: str, mtime_ns: int, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """A TORCS track's centre line, read once per file version: planning and rendering ask for it again and again
+    (a whole .acc parsed each time was two thirds of a small render). The arrays are read-only, being shared."""
+    points, widths = centre_line(read_ac3d(acc))
+    points.setflags(write=False)
+    widths.setflags(write=False)
+    return points, widths
+
+
 def torcs_sources() -> list[SceneSource]:
     out = []
     for d in road_tracks():
         acc = d / f"{d.name}.acc"
 
         def runs(acc=acc):
-            return [centre_line(read_ac3d(acc))]
+            st = acc.stat()
+            return [_track_centre_line(str(acc), st.st_mtime_ns, st.st_size)]
 
         def load(d=d, acc=acc, runs=runs):
             parts = ac3d_parts(acc, [d, TORCS_DIR / "data" / "textures"])
