@@ -13,33 +13,28 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import hydra
-import lightning as L
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from nvs.core.errors import UserError, user_message
-from nvs.core.types import ROUTES
-from nvs.run.build import build_data
-from nvs.run.checkpoints import restore_module, restore_run_config
-from nvs.run.cli import before_hydra, exits_cleanly, hydra_task
-from nvs.run.display_callbacks import PairTestBar
-from nvs.run.inference_skipping import skip_at_inference
-from nvs.run.precision import Choice, choose
-from nvs.run.routing import RULE_FILE, route_option, write_rule
-from nvs.run.size_timing import sizes_option, timing_by_size
-from nvs.run.skips_calibration import threshold_option
-from nvs.run.validation_pass import Calibration
 from nvs.run.artifacts import (check_writable, is_global_zero, run_record, summary_line, test_record,
                                write_run_results)
+from nvs.run.cli import before_hydra, exits_cleanly, hydra_task
 from nvs.run.compose import CONF_DIR
-from nvs.run.standard_callbacks import SignalStop
+
+if TYPE_CHECKING:
+    from nvs.run.precision import Choice
+    from nvs.run.standard_callbacks import SignalStop
 
 
 def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
     """Test the checkpoint (or reference model) of ``cfg``; write metrics.json and test_per_image.csv into
     ``out_dir``, both when it completes (SIGINT/SIGTERM before that: :class:`Interrupted`, nothing written)."""
+    from nvs.run.standard_callbacks import SignalStop  # Lightning, torch: loaded once the config is known good
+
     stop = SignalStop()
     stop.install()
     try:
@@ -49,6 +44,18 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
 
 
 def _evaluate(cfg: DictConfig, out_dir: Path, stop: SignalStop) -> dict:
+    import lightning as L
+
+    from nvs.core.types import ROUTES
+    from nvs.run.build import build_data
+    from nvs.run.checkpoints import restore_module, restore_run_config
+    from nvs.run.display_callbacks import PairTestBar
+    from nvs.run.inference_skipping import skip_at_inference
+    from nvs.run.routing import RULE_FILE, route_option, write_rule
+    from nvs.run.size_timing import sizes_option, timing_by_size
+    from nvs.run.skips_calibration import threshold_option
+    from nvs.run.validation_pass import Calibration
+
     limit = cfg.get("limit")
     if limit is not None and (isinstance(limit, bool) or not isinstance(limit, int) or limit < 1):
         raise UserError(f"limit={limit}: expected a positive number of test pairs (limit=null: all of them)")
@@ -117,13 +124,14 @@ def check_composes(argv: list[str]) -> None:
         return
     from hydra.errors import HydraException
 
-    from nvs.models.reference import REFERENCE_MODELS
     from nvs.run.compose import compose_raw
     from nvs.run.config_check import unknown_override
 
     try:
         compose_raw("evaluate", argv)
     except HydraException as err:
+        from nvs.models.reference import REFERENCE_MODELS  # torch: only to word this error
+
         given = dict(a.lstrip("+").split("=", 1) for a in argv if "=" in a)
         text = str(err).split("Config search path")[0]
         if "'data.size'" in text:
@@ -145,6 +153,8 @@ def check_composes(argv: list[str]) -> None:
 def evaluation_precision(cfg: DictConfig, run: DictConfig) -> Choice:
     """``precision=auto``: measured on this machine; null: the run's own (precision and layout); else as given.
     A reference model (no checkpoint) always runs its own (32-true)."""
+    from nvs.run.precision import choose
+
     accelerator = (cfg.get("trainer") or {}).get("accelerator", "auto")
     try:
         # a reference model has no network worth speeding up: it keeps its exact fp32 (as committed jobs ran it)
@@ -164,6 +174,8 @@ def main(cfg: DictConfig) -> None:
         result = evaluate(cfg, out_dir)
     if not is_global_zero():
         return
+    from nvs.run.routing import RULE_FILE
+
     print(summary_line(result["test"]))
     print(f"wrote {out_dir / 'metrics.json'} and {out_dir / 'test_per_image.csv'}"
           + (f" and {out_dir / RULE_FILE}" if cfg.get("route") == "fit" else ""))

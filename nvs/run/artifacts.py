@@ -6,6 +6,7 @@ from __future__ import annotations
 import io
 import os
 import shutil
+import sys
 import tempfile
 from pathlib import Path
 
@@ -66,7 +67,14 @@ def summary_line(test: dict) -> str:
 
 
 def is_global_zero() -> bool:
-    """Rank 0 of a distributed run (or a plain run): the one process that writes and removes run files."""
+    """Rank 0 of a distributed run (or a plain run): the one process that writes and removes run files.
+
+    Lightning's own record once it is loaded; before that (a command that stops at its config) the rank a launcher
+    gives in the environment, read as Lightning reads it, so that an early error costs no Lightning import."""
+    if "lightning" not in sys.modules:
+        rank = next((os.environ[k] for k in ("RANK", "LOCAL_RANK", "SLURM_PROCID", "JSM_NAMESPACE_RANK")
+                     if k in os.environ), "0")
+        return rank.strip() in ("", "0")
     from lightning.pytorch.utilities.rank_zero import rank_zero_only
 
     return getattr(rank_zero_only, "rank", 0) == 0
