@@ -111,3 +111,10 @@ def json_text(obj: Any) -> str:
 
 def write_json(path: str | Path, obj: Any) -> None:
     write_text(path, json_text(obj))
+
+
+def cache_dir() -> Path:
+    """Where nvs keeps what a machine measured or derived once: ``$NVS_CACHE_DIR``, else ``$XDG_CACHE_HOME/nvs`` or
+    ``~/.cache/nvs``."""
+    return Path(os.environ.get("NVS_CACHE_DIR") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "nvs"))

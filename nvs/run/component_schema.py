@@ -23,7 +23,6 @@ import hashlib
 import importlib
 import inspect
 import json
-import os
 import pathlib
 import sys
 import types
@@ -32,7 +31,7 @@ from typing import Any, Dict, List, Optional, Union
 
 from omegaconf import MISSING
 
-from nvs.core.atomic import write_json
+from nvs.core.atomic import cache_dir, write_json
 
 RESERVED: dict[str, Any] = {"_target_": str, "_partial_": bool, "_recursive_": bool, "_convert_": Any,
                             "_args_": List[Any]}
@@ -178,9 +177,7 @@ _PRIMITIVES = {"any": Any, "bool": bool, "int": int, "float": float, "str": str}
 
 
 def cache_file() -> pathlib.Path:
-    root = os.environ.get("NVS_CACHE_DIR") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "nvs")
-    return pathlib.Path(root) / "component_schemas.json"
+    return cache_dir() / "component_schemas.json"
 
 
 @functools.lru_cache(maxsize=None)

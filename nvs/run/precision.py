@@ -24,6 +24,8 @@ from pathlib import Path
 
 import torch
 
+from nvs.core.atomic import cache_dir
+
 AUTO = "auto"
 # mode -> (Lightning precision, channels_last)
 MODES: dict[str, tuple[str, bool]] = {"fp32": ("32-true", False), "cl": ("32-true", True),
@@ -111,10 +113,8 @@ def machine_key() -> str:
 
 
 def cache_path() -> Path:
-    """``$NVS_CACHE_DIR/precision.json``, else ``$XDG_CACHE_HOME/nvs`` or ``~/.cache/nvs``."""
-    root = os.environ.get("NVS_CACHE_DIR") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"), "nvs")
-    return Path(root) / "precision.json"
+    """``precision.json`` in :func:`nvs.core.atomic.cache_dir`."""
+    return cache_dir() / "precision.json"
 
 
 def _time_modes(convs: list[torch.nn.Module], inputs: list[torch.Tensor], rounds: int) -> dict[str, float]:
