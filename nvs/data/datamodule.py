@@ -14,6 +14,7 @@ from nvs.core.errors import DataError, UserError
 from nvs.core.geometry import scale_intrinsics
 from nvs.data.files import depth_problem, image_problem
 from nvs.data.kitti import ScenesFormat
+from nvs.data.sampling import EpochSampler, ResumableLoader
 from nvs.data.shapenet import ObjectsFormat, object_pairs, random_partner
 
 
@@ -102,13 +103,17 @@ class PairDataset(Dataset):
     def __len__(self) -> int:
         return len(self.pairs) if self.pairs is not None else len(self.sources)
 
-    def __getitem__(self, i: int) -> dict:
+    def __getitem__(self, key: int | tuple[int, int]) -> dict:
+        """``key``: an index, or (index, item seed) from :class:`~nvs.data.sampling.EpochSampler`, whose seed decides
+        the item's partner and augmentation (otherwise torch's RNG, seeded per worker by Lightning, does)."""
+        i, item_seed = key if isinstance(key, tuple) else (key, None)
+        g = None if item_seed is None else torch.Generator().manual_seed(item_seed)
         if self.pairs is not None:
             src_id, tgt_id = self.pairs[i]
         else:
             src_id = self.sources[i]
-            # torch's RNG is seeded per worker by Lightning, so draws are reproducible under a fixed seed.
-            tgt_id = self.partner(src_id, random.Random(int(torch.randint(0, 2**31 - 1, ()))))
+            draw = item_seed if item_seed is not None else int(torch.randint(0, 2**31 - 1, ()))
+            tgt_id = self.partner(src_id, random.Random(draw))
         src, d_src = self.cache.get(src_id)
         tgt, d_tgt = self.cache.get(tgt_id)
         item = {
@@ -124,10 +129,10 @@ class PairDataset(Dataset):
         }
         if d_src is not None:
             item["depth_src"], item["depth_tgt"] = d_src, d_tgt
-        if self.augment.get("mirror") and bool(torch.randint(0, 2, ())):
+        if self.augment.get("mirror") and bool(torch.randint(0, 2, (), generator=g)):
             item = mirror_pair(item)
         if self.augment.get("permute_rgb"):
-            order = torch.randperm(3)
+            order = torch.randperm(3, generator=g)
             item["src"], item["tgt"] = item["src"][order], item["tgt"][order]
         return item
 
@@ -239,20 +244,28 @@ class NVSDataModule(L.LightningDataModule):
         return PairDataset(cache, self.camera, sources=sources, partner=lambda s, rng: random_partner(s, d, rng),
                            augment=lo.augment)
 
-    def _loader(self, split: str, shuffle: bool, batch_size: int) -> DataLoader:
-        g = torch.Generator().manual_seed(self.seed)
-        return DataLoader(self.dataset(split), batch_size=batch_size, shuffle=shuffle, generator=g,
-                          num_workers=self.loader.num_workers, drop_last=shuffle,
-                          persistent_workers=self.loader.num_workers > 0)
+    def _loader(self, split: str, batch_size: int) -> DataLoader:
+        return DataLoader(self.dataset(split), batch_size=batch_size, shuffle=False,
+                          num_workers=self.loader.num_workers, persistent_workers=self.loader.num_workers > 0)
 
-    def train_dataloader(self):
-        return self._loader("train", True, self.loader.batch_size)
+    def train_dataloader(self) -> ResumableLoader:
+        """Shuffled by (seed, epoch), sharded over the trainer's ranks, resumed mid-epoch (nvs.data.sampling)."""
+        trainer = self.trainer
+        world, rank = (trainer.world_size, trainer.global_rank) if trainer is not None else (1, 0)
+        data = self.dataset("train")
+        sampler = EpochSampler(data, self.seed, world, rank)
+        loader = ResumableLoader(data, batch_size=self.loader.batch_size, sampler=sampler,
+                                 num_workers=self.loader.num_workers, drop_last=True,
+                                 persistent_workers=self.loader.num_workers > 0)
+        if trainer is not None:
+            loader.progress = lambda: trainer.fit_loop.epoch_loop.batch_progress.current.processed
+        return loader
 
     def val_dataloader(self):
-        return self._loader("val", False, self.loader.eval_batch_size)
+        return self._loader("val", self.loader.eval_batch_size)
 
     def test_dataloader(self):
-        return self._loader("test", False, self.loader.eval_batch_size)
+        return self._loader("test", self.loader.eval_batch_size)
 
 
 def train_subset(models: list[str], fraction: float, seed: int) -> list[str]:
