@@ -74,7 +74,6 @@ def test_killed_run_resumes_and_matches_an_uninterrupted_one(objects_root, tmp_p
     assert a["train_samples_per_s"] * a["train_wall_s"] == pytest.approx(2 * MAX_STEPS)
     # The resumed loader continues the epoch with the batches the uninterrupted run trains next (nvs.data.sampling),
     # and items draw from their own seeds: the two runs train on the same data and end with the same metrics.
-    print({k: (a["test"][k], b["test"][k]) for k in ("l1", "ssim_paper", "psnr")})
     for key in ("l1", "ssim_paper", "psnr"):
         assert a["test"][key] == pytest.approx(b["test"][key], rel=1e-4), key
     assert a["test"]["n_pairs"] == b["test"]["n_pairs"] == 4
