@@ -121,13 +121,47 @@ def test_a_file_that_is_not_an_image_is_one_clear_error(data, message):
 
 
 # -- the session -----------------------------------------------------------------------------------------------------
-def _session(net, autocast=torch.bfloat16) -> ViewSession:
+def _session(net, autocast=torch.bfloat16, compiled=False) -> ViewSession:
     batch = fixture_batch(B=2)
     gallery = [Source(f"g{i}", f"m_{40 * i}_0", (batch["src"][i] * 255).to(torch.uint8), {"azimuth": 40.0 * i,
                                                                                           "elevation": 0.0})
                for i in range(2)]
     return ViewSession(net, 64, batch["K"][0], batch["pivot"][0], ObjectControls(40, (0.0, 0.0, 2.0)), gallery,
-                       autocast)
+                       autocast, compiled=compiled)
+
+
+def _views(session, azimuths=(0.0, 15.0, 30.0)):
+    return [session.view("g0", {"azimuth": a, "elevation": 0.0}) for a in azimuths]
+
+
+def test_a_compile_that_fails_stays_eager_with_one_line(tmp_path, monkeypatch, capsys):
+    net = _net(tmp_path)
+    eager = _views(_session(net, None))
+
+    def broken(fn, **kwargs):
+        def run(*args, **kw):
+            raise RuntimeError("no C++ compiler")
+        return run
+
+    monkeypatch.setattr(torch, "compile", broken)
+    session = _session(net, None, compiled=True)
+    assert session.compiled
+    views = _views(session)
+    assert not session.compiled and capsys.readouterr().out.count("torch.compile failed (RuntimeError") == 1
+    assert all(np.array_equal(a.rgb, b.rgb) for a, b in zip(views, eager))
+    assert not _session(_net(tmp_path, "model=tatarchenko"), None, compiled=True).compiled  # not split: whole net
+
+
+@pytest.mark.slow  # ~1 min: inductor compiles the pose step
+def test_the_compiled_pose_step_renders_the_eager_views(tmp_path):
+    net = _net(tmp_path)
+    eager = _views(_session(net, None))
+    session = _session(net, None, compiled=True)
+    views = _views(session)
+    assert session.compiled
+    for a, b in zip(views, eager):  # float32; constant folding reorders sums: within one grey level
+        assert np.abs(a.rgb.astype(int) - b.rgb.astype(int)).max() <= 1
+        assert np.abs(a.depth_values - b.depth_values).max() <= 1e-3 * np.abs(b.depth_values).max()
 
 
 @pytest.mark.parametrize("autocast", [torch.bfloat16, None])

@@ -197,6 +197,7 @@ class Viewer(_Tool):  # conf/viewer.yaml
     host: str = _typed()
     port: int = _typed()
     threads: Optional[int] = _typed()
+    compile: bool = _typed()  # torch.compile of the pose step, frozen weights (nvs.viewer.session)
     route: Optional[str] = _typed()  # a route_rule.json fitted on the checkpoint
     load: ViewerLoad = _typed()
     screenshot: ViewerScreenshot = _typed()

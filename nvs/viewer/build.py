@@ -58,10 +58,11 @@ def build_session(cfg: DictConfig, extra_ids: tuple[str, ...] = ()) -> tuple[Vie
         router = routed(module, rule)
         route = {"file": str(cfg.route), "rule": payload["rule"], "validation": payload["validation"]}
     session = ViewSession(module.net, int(run.data.size), test.K, test.pivot, controls, gallery,
-                          choice.autocast_dtype, channels_last=choice.channels_last, router=router)
+                          choice.autocast_dtype, channels_last=choice.channels_last, router=router,
+                          compiled=bool(cfg.get("compile", False)))
     meta = {"model": module.model_name, "data": run.data.get("name"), "checkpoint": cfg.ckpt_path,
             "precision": choice.precision, "precision_choice": choice.line(), "encoder_once": session.splits,
-            "route": route}
+            "route": route, "compiled": session.compiled}  # nvs.viewer's start-up sets it again after the warm-up
     return session, meta
 
 
@@ -79,7 +80,8 @@ def pick_source(session: ViewSession, source: int | str) -> Source:
         raise UserError(f"source={source!r}: expected a gallery index, a test image id or an image file")
     if isinstance(source, int):
         if not 0 <= source < len(session.gallery):
-            raise UserError(f"source={source}: the gallery has {len(session.gallery)} images (0..{len(session.gallery) - 1})")
+            n = len(session.gallery)
+            raise UserError(f"source={source}: the gallery has {n} images (0..{n - 1})")
         return session.gallery[f"g{source}"]
     path = Path(source)
     if path.is_file():

@@ -91,7 +91,8 @@ def measure(url: str, requests: int, warmup: int) -> dict:
 def main(cfg: DictConfig) -> None:
     overrides = [o for o in HydraConfig.get().overrides.task if not o.startswith(("load.", "port="))]
     load_before = os.getloadavg()
-    with ViewerProcess(overrides) as url:
+    # compile=true compiles the pose step before the viewer prints its URL (minutes on a small CPU)
+    with ViewerProcess(overrides, timeout_s=900.0 if cfg.compile else 180.0) as url:
         result = measure(url, int(cfg.load.requests), int(cfg.load.warmup))
     report = header("python -m nvs.viewer.load " + " ".join(HydraConfig.get().overrides.task), iso=True,
                     threads=cfg.threads, loadavg_1min_before=load_before[0],

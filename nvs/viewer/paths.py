@@ -5,7 +5,8 @@ with the data module's own pose function (and rejects a value outside the traine
 source view, so the first frame is the model re-rendering its input.
 
 - ``orbit``: objects swing the azimuth over the whole trained change (+max, back, -max, back) while the elevation
-  goes to the farther rendered extreme and back; scenes sway sideways over their range while moving forward (to the farthest trained motion) and back.
+  goes to the farther rendered extreme and back; scenes sway sideways over their range while moving forward (to the
+  farthest trained motion) and back.
 - ``forward``: scenes drive forward from the source position to the farthest trained forward motion (eased). Objects
   have no forward axis (their camera is on a sphere), so this path is one clear error for them.
 - ``custom``: keyframes from a small YAML/JSON file, linearly interpolated to ``frames``.

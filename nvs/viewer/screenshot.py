@@ -1,7 +1,8 @@
 """python -m nvs.viewer.screenshot ckpt_path=... [screenshot.out=docs/viewer.png]: a picture of the running viewer.
 
-Starts the viewer in its own process (``nvs.viewer.process``), opens it in Debian's headless chromium (``/usr/bin/chromium``)
-through Playwright, picks a gallery image, drags across the synthesised view and saves a screenshot of the page.
+Starts the viewer in its own process (``nvs.viewer.process``), opens it in Debian's headless chromium
+(``/usr/bin/chromium``) through Playwright, picks a gallery image, drags across the synthesised view and saves a
+screenshot of the page.
 """
 
 from __future__ import annotations

@@ -6,7 +6,8 @@ GET  /api/view?source=<key>&<axis>=<value>...[&route=1]  one view: {rgb, depth (
                         depth_range, model_ms, route, route_features, ...}; route=1: through the fitted route rule
 POST /api/upload        multipart form field 'image' -> a new source {key, label, image, initial}
 GET  /api/ply?source=<key>&<axis>=<value>...    the view's predicted depth as a coloured point cloud (PLY download)
-GET  /api/video?source=<key>&path=orbit|forward&frames=N&fps=F   {gif, mp4 (data URLs), frames, ms} (nvs/viewer/video.py)
+GET  /api/video?source=<key>&path=orbit|forward&frames=N&fps=F   {gif, mp4 (data URLs), frames, ms}
+                                                                 (nvs/viewer/video.py)
 Errors are JSON {"error": message} with status 400 (bad input), 413 (file too large) or 500; the server keeps running.
 Model work runs on one worker thread, so the event loop stays free and views are computed one at a time.
 """

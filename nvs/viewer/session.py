@@ -61,11 +61,15 @@ class ViewSession:
         cache_size: encoded sources (and uploads) kept.
         router: the network behind a fitted route rule (``nvs.models.route.RoutedNet`` of ``net``): ``view(...,
             route=True)`` renders through it, reusing the cached encoding; None: no routing offered.
+        compiled: run the pose step (``net.render``) through ``torch.compile`` with inductor's freezing (the weights
+            become constants, convolution weights pre-packed); it compiles on the first view. A network that is not
+            split, or a compile that fails (one logged line), stays eager. Routed views stay eager.
     """
 
     def __init__(self, net: nn.Module, image_size: int, K: torch.Tensor, pivot: torch.Tensor,
                  controls: ObjectControls | SceneControls, gallery: list[Source], autocast: torch.dtype | None,
-                 cache_size: int = 8, channels_last: bool = True, router: EncodeOnce | None = None):
+                 cache_size: int = 8, channels_last: bool = True, router: EncodeOnce | None = None,
+                 compiled: bool = False):
         if not gallery:
             raise UserError("the dataset's test split has no source images for the gallery")
         self.layout = torch.channels_last if channels_last else torch.contiguous_format
@@ -82,6 +86,8 @@ class ViewSession:
         self.splits = isinstance(net, EncodeOnce)
         self.encoder_runs = 0
         self.router = router
+        self.compiled = bool(compiled and self.splits)
+        self._render = torch.compile(self.net.render, dynamic=False) if self.compiled else None
 
     # -- sources ---------------------------------------------------------------------------------------------------
     def source(self, key: str) -> Source:
@@ -122,6 +128,20 @@ class ViewSession:
             self._encoded.popitem(last=False)
         return encoded, True
 
+    def _pose_step(self, encoded: object, batch: dict) -> dict:
+        if self._render is None:
+            return self.net.render(encoded, batch)
+        import torch._inductor.config as inductor
+
+        try:
+            with inductor.patch(freezing=True):
+                return self._render(encoded, batch)
+        except Exception as err:  # noqa: BLE001 - any compiler failure: the eager pose step computes the same view
+            print(f"viewer: compile=true: torch.compile failed ({err.__class__.__name__}: {str(err)[:200]}); "
+                  "the pose step runs eager", flush=True)
+            self._render, self.compiled = None, False
+            return self.net.render(encoded, batch)
+
     def view(self, key: str, values: dict[str, float], route: bool = False) -> View:
         """Render source ``key`` at the pose of the control ``values`` (checked against the trained range); with
         ``route`` through the router (a copied view has no depth: none was predicted)."""
@@ -136,7 +156,7 @@ class ViewSession:
             if route:
                 out = self.router.render((self._src(source), encoded), batch)
             else:
-                out = self.net.render(encoded, batch) if self.splits else self.net({**batch, "src": encoded})
+                out = self._pose_step(encoded, batch) if self.splits else self.net({**batch, "src": encoded})
             rgb = to_uint8(out["rgb"][0])
             depth = out.get("depth")
             if depth is not None and not bool(torch.isfinite(depth[0]).all()):
