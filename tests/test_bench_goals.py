@@ -99,3 +99,38 @@ def test_a_committed_report_renders_again_with_its_numbers_and_the_missed_goals_
     (tmp_path / "bad.json").write_text("[1, 2]")
     with pytest.raises(UserError, match="bad.json: not a bench report"):
         rerender(tmp_path / "bad.json")
+
+
+# -- the viewer's goal, from the viewer's load reports of the bench's machine ----------------------------------------
+def _load_report(path, views_per_s, compiled, model_ms, gflop=6.5, size=128, threads=None):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"image_size": size, "views_per_s": views_per_s, "median_ms": 1000 / views_per_s,
+                                "model_median_ms": model_ms, "compiled": compiled, "pose_gflop": gflop,
+                                "mode": "fp32", "precision": "32-true", "threads": threads}))
+
+
+def test_the_viewer_goal_reads_the_machines_load_reports_and_bounds_a_miss(tmp_path, capsys):
+    from nvs.bench.viewer_goal import viewer_goal_lines, viewer_reports
+
+    machine = tmp_path / "results" / "viewer" / "amd-x"
+    _load_report(machine / "eager.json", 6.0, False, 160.0)
+    _load_report(machine / "ab" / "c1.json", 10.0, True, 90.0)
+    _load_report(machine / "ab" / "c2.json", 12.0, True, 100.0)
+    _load_report(machine / "t1.json", 3.0, False, 300.0, threads=1)  # not the default threads: not read
+    _load_report(machine / "s256.json", 3.0, False, 300.0, size=256)  # another size
+    (machine / "stray.json").write_text("{}")
+    reports = viewer_reports(tmp_path / "results" / "bench", "cpu--amd-x")
+    assert "stray.json: not a report of nvs.viewer.load; ignored" in capsys.readouterr().err
+    assert {r["file"] for r in reports} >= {"results/viewer/amd-x/ab/c1.json", "results/viewer/amd-x/eager.json"}
+    eager, compiled = viewer_goal_lines(reports, {"fp32_conv_gflops": 130.0, "fp32_conv_cl_gflops": 200.0})
+    assert "(eager, fp32; median of 1 run(s)" in eager and "6.0 views/s" in eager and "short by 3.33×" in eager
+    # 6.5 GFLOP in 160 ms = 41 GFLOP/s, 31% of the NCHW peak; at 200 GFLOP/s: 32 ms, 31 views/s: within the peak
+    assert "6.5 GFLOP in 160 ms (41 GFLOP/s), 31% of its mode's conv peak (130)" in eager
+    assert "it would take 32 ms (31 views/s before PNG and HTTP)" in eager and "batch-1 convolutions" in eager
+    assert "(compile=true, fp32; median of 2 run(s)" in compiled and "11.0 views/s" in compiled
+    met = viewer_goal_lines([{**reports[0], "views_per_s": 25.0, "compiled": False, "image_size": 128,
+                              "threads": None}], {})
+    assert met[0].endswith("goal ≥ 20: **met**")
+    slow = viewer_goal_lines([{**reports[0], "views_per_s": 5.0, "pose_gflop": 20.0, "image_size": 128,
+                               "threads": None, "model_median_ms": 200.0}], {"fp32_conv_gflops": 100.0})
+    assert "is beyond this machine's arithmetic" in slow[0]  # 20 GFLOP at 100 GFLOP/s: 5 views/s at most

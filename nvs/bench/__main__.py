@@ -17,6 +17,7 @@ from nvs.bench.contenders import MODES
 from nvs.bench.goals import profile_shares
 import nvs.bench.measure as measure
 from nvs.bench.reference import check_path
+from nvs.bench.viewer_goal import viewer_reports
 from nvs.core.atomic import write_json, write_text
 from nvs.core.errors import UserError
 from nvs.core.provenance import command_line, device_name, header
@@ -112,7 +113,8 @@ def main(cfg: DictConfig) -> None:
                   python=sys.version.split()[0], reference=reference or "not timed (reference=<path> times it)",
                   repeats=cfg.repeats, warmup=cfg.warmup)
     name = device_slug(device)
-    report = {"header": head, "sizes": [], "profiles": profile_shares(cfg.out_dir, name)}
+    report = {"header": head, "sizes": [], "profiles": profile_shares(cfg.out_dir, name),
+              "viewer": viewer_reports(cfg.out_dir, name)}
     if cfg.measure_peak:
         report["peak"] = measure.machine_peak(device)
         print(f"peak: {report['peak']}", flush=True)

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from nvs.bench.measure import MODE_PEAK
 from nvs.bench.run import REFERENCE, versus_reference
+from nvs.bench.viewer_goal import viewer_goal_lines
 
 # (what, goal) -- the thresholds the report checks
 WITHIN_FASTEST = 1.10
@@ -145,6 +146,7 @@ def goal_lines(report: dict) -> list[str]:
                 lines.append(line)
         if f"{REFERENCE}/fp32" in block["rows"]:
             lines += _versus_authors(block, peaks)
+    lines += viewer_goal_lines(report.get("viewer") or [], peaks)
     return (["## Goals", "", *lines, ""]) if lines else []
 
 

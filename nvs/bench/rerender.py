@@ -15,6 +15,7 @@ from nvs.bench.contenders import MODES
 from nvs.bench.goals import profile_shares
 from nvs.bench.report import markdown
 from nvs.bench.run import REFERENCE
+from nvs.bench.viewer_goal import viewer_reports
 from nvs.core.atomic import write_text
 from nvs.core.errors import UserError
 from nvs.core.provenance import git_sha
@@ -48,6 +49,7 @@ def rerender(json_path: Path) -> Path:
     h = report["header"]
     report["header"] = {**{k: h[k] for k in first if k in h}, **{k: v for k, v in h.items() if k not in first}}
     report["profiles"] = {**report.get("profiles", {}), **profile_shares(str(json_path.parent), json_path.stem)}
+    report["viewer"] = viewer_reports(json_path.parent, json_path.stem) or report.get("viewer") or []
     order = _run_order(h.get("command", ""))
     for block in report["sizes"]:  # the JSON keeps its keys sorted: the rows again in the run's order
         block["rows"] = dict(sorted(block["rows"].items(), key=lambda kv: order(kv[1])))

@@ -29,6 +29,7 @@ def main(cfg: DictConfig) -> None:
         print("viewer: compile=true: compiling the pose step (once; minutes on a small CPU)", flush=True)
     session.view(first.key, session.controls.initial(first.meta))  # warm-up: the first page view is not the slowest
     meta["compiled"] = session.compiled  # False again if the compile failed
+    meta["pose_gflop"] = session.pose_gflop(first.key)
     print(f"viewer: model '{meta['model']}' at {session.image_size}², {len(session.gallery)} gallery images, "
           f"{meta['precision_choice']}, {'encoder once per source' if session.splits else 'whole network per view'}"
           f"{', pose step compiled' if session.compiled else ''}", flush=True)

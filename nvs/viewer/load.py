@@ -73,6 +73,7 @@ def measure(url: str, requests: int, warmup: int) -> dict:
     median = statistics.median(lat)
     return {
         "image_size": info["image_size"], "model": info["model"], "precision": info["precision"],
+        "mode": info.get("mode"), "compiled": info.get("compiled"), "pose_gflop": info.get("pose_gflop"),
         "requests": requests, "warmup": warmup,
         "median_ms": median, "p10_ms": lat[int(0.1 * (len(lat) - 1))], "p90_ms": lat[int(0.9 * (len(lat) - 1))],
         "views_per_s": 1000.0 / median,

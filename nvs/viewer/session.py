@@ -142,6 +142,23 @@ class ViewSession:
             self._render, self.compiled = None, False
             return self.net.render(encoded, batch)
 
+    def pose_gflop(self, key: str) -> float:
+        """GFLOP (convolutions and matmuls, ``torch.utils.flop_counter``) of one eager pose step of source ``key`` at
+        its initial pose: what the encoder-once view costs (the whole network for one that is not split)."""
+        from torch.utils.flop_counter import FlopCounterMode
+
+        source = self.source(key)
+        batch = {"K": self.K, "T_tgt_src": self.controls.pose(self.controls.initial(source.meta), source.meta)[None],
+                 "pivot": self.pivot}
+        with torch.inference_mode(), self._context():
+            encoded, _ = self._encode(source)
+            with FlopCounterMode(display=False) as counter:
+                if self.splits:
+                    self.net.render(encoded, batch)
+                else:
+                    self.net({**batch, "src": encoded})
+        return counter.get_total_flops() / 1e9
+
     def view(self, key: str, values: dict[str, float], route: bool = False) -> View:
         """Render source ``key`` at the pose of the control ``values`` (checked against the trained range); with
         ``route`` through the router (a copied view has no depth: none was predicted)."""
