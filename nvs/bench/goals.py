@@ -15,7 +15,7 @@ import json
 import sys
 from pathlib import Path
 
-from nvs.bench.measure import MODE_PEAK
+from nvs.bench.measure import mode_peak
 from nvs.bench.run import REFERENCE, versus_reference
 from nvs.bench.viewer_goal import viewer_goal_lines
 
@@ -38,10 +38,6 @@ def _full(block: dict) -> str | None:
 
 def _mark(ok: bool) -> str:
     return "**met**" if ok else "**not met**"
-
-
-def _peak(peaks: dict, mode: str) -> float | None:
-    return peaks.get(MODE_PEAK.get(mode, "") + "_gflops")
 
 
 def share_bound(row: dict, batch: int, peak: float, goal: float, profile: dict | None) -> str:
@@ -135,7 +131,7 @@ def goal_lines(report: dict) -> list[str]:
                     lines.append(line)
         if size == 128 and auto in rows:
             row = rows[auto]
-            ach, peak = row.get("train_achieved_gflops"), _peak(peaks, auto)
+            ach, peak = row.get("train_achieved_gflops"), mode_peak(peaks, auto)
             if ach and peak:
                 share = ach / peak
                 line = (f"- 128², {model} {auto} training step: {100 * share:.0f}% of its mode's conv peak; "
@@ -153,11 +149,11 @@ def goal_lines(report: dict) -> list[str]:
 def _versus_authors(block: dict, peaks: dict) -> list[str]:
     out = []
     ref = block["rows"][f"{REFERENCE}/fp32"]
-    their_peak = _peak(peaks, "fp32")
+    their_peak = mode_peak(peaks, "fp32")
     for mode, r in versus_reference(block["rows"], "full").items():
         row = block["rows"][f"full/{mode}"]
         train, view = r.get("train_speedup"), r.get("novel_view_speedup")
-        peak = _peak(peaks, mode)
+        peak = mode_peak(peaks, mode)
         share = row.get("eval_achieved_gflops", 0) / peak if peak else None
         if train:
             line = (f"- {block['size']}², full {mode} against the authors' code: training step {train:.2f}× faster; "

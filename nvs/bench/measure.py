@@ -126,6 +126,12 @@ PEAK_KINDS = {"fp32_matmul": (None, "matmul"), "fp32_conv": (None, "conv"), "fp3
 # Which peak a bench mode is measured against (its own arithmetic and layout).
 MODE_PEAK = {"fp32": "fp32_conv", "cl": "fp32_conv_cl", "bf16": "bf16_conv_cl", "bf16_cl": "bf16_conv_cl",
              "compile": "bf16_conv_cl"}
+
+
+def mode_peak(peaks: dict, mode: str) -> float | None:
+    """The measured conv peak (GFLOP/s) a row of ``mode`` is compared with, if the report measured it."""
+    return peaks.get(MODE_PEAK.get(mode, "") + "_gflops")
+
 _N, _C, _S = 8, 64, 128
 SLOW_PEAK_CALL_MS = 2000.0
 

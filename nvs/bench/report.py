@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from nvs.bench.goals import goal_lines
-from nvs.bench.measure import MODE_PEAK
+from nvs.bench.measure import mode_peak
 from nvs.bench.run import REFERENCE, versus_reference
 from nvs.core.provenance import markdown as provenance_markdown
 
@@ -17,7 +17,7 @@ def _f(value, fmt: str) -> str:
 
 
 def _pct(achieved, peaks: dict, mode: str) -> str:
-    peak = peaks.get(MODE_PEAK.get(mode, "") + "_gflops")
+    peak = mode_peak(peaks, mode)
     return f"{100 * achieved / peak:.0f}%" if achieved and peak else "–"
 
 

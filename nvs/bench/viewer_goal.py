@@ -14,7 +14,7 @@ import statistics
 import sys
 from pathlib import Path
 
-from nvs.bench.measure import MODE_PEAK
+from nvs.bench.measure import mode_peak
 
 VIEWS_PER_S_128 = 20.0
 _KEEP = ("image_size", "views_per_s", "median_ms", "model_median_ms", "compiled", "pose_gflop", "mode", "precision",
@@ -65,14 +65,15 @@ def viewer_goal_lines(reports: list[dict], peaks: dict) -> list[str]:
             line += (f", short by {VIEWS_PER_S_128 / vps:.2f}×: a view takes {1000 / vps:.0f} ms end to end against "
                      f"the goal's {1000 / VIEWS_PER_S_128:.0f} ms")
             gflop = [r["pose_gflop"] for r in rows if r.get("pose_gflop")]
-            model_ms = statistics.median(r["model_median_ms"] for r in rows if r.get("model_median_ms"))
-            if gflop:
-                g = statistics.median(gflop)
-                line += f"; the pose step does {g:.1f} GFLOP in {model_ms:.0f} ms ({1000 * g / model_ms:.0f} GFLOP/s)"
-                peak = peaks.get(MODE_PEAK.get(mode, "") + "_gflops")
+            model_ms = [r["model_median_ms"] for r in rows if r.get("model_median_ms")]
+            if gflop and model_ms:
+                g, ms = statistics.median(gflop), statistics.median(model_ms)
+                rate = 1000 * g / ms
+                line += f"; the pose step does {g:.1f} GFLOP in {ms:.0f} ms ({rate:.0f} GFLOP/s)"
+                peak = mode_peak(peaks, mode)
                 best = max((v for k, v in peaks.items() if k.startswith("fp32_conv")), default=None)
                 if peak:
-                    line += f", {100 * g / model_ms * 1000 / peak:.0f}% of its mode's conv peak ({peak:.0f})"
+                    line += f", {100 * rate / peak:.0f}% of its mode's conv peak ({peak:.0f})"
                 if best:
                     bound = 1000 * g / best
                     line += (f"; at the best fp32 conv peak ({best:.0f} GFLOP/s, batch 8) it would take {bound:.0f} "

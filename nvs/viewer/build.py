@@ -62,7 +62,7 @@ def build_session(cfg: DictConfig, extra_ids: tuple[str, ...] = ()) -> tuple[Vie
                           compiled=bool(cfg.get("compile", False)))
     meta = {"model": module.model_name, "data": run.data.get("name"), "checkpoint": cfg.ckpt_path,
             "precision": choice.precision, "mode": choice.mode, "precision_choice": choice.line(),
-            "encoder_once": session.splits, "route": route, "compiled": session.compiled}  # nvs.viewer's start-up sets it again after the warm-up
+            "encoder_once": session.splits, "route": route}
     return session, meta
 
 

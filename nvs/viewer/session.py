@@ -128,9 +128,13 @@ class ViewSession:
             self._encoded.popitem(last=False)
         return encoded, True
 
+    def _eager_step(self, encoded: object, batch: dict) -> dict:
+        """The view from a cached encoding: the pose step of a split network, the whole network otherwise."""
+        return self.net.render(encoded, batch) if self.splits else self.net({**batch, "src": encoded})
+
     def _pose_step(self, encoded: object, batch: dict) -> dict:
         if self._render is None:
-            return self.net.render(encoded, batch)
+            return self._eager_step(encoded, batch)
         import torch._inductor.config as inductor
 
         try:
@@ -140,7 +144,7 @@ class ViewSession:
             print(f"viewer: compile=true: torch.compile failed ({err.__class__.__name__}: {str(err)[:200]}); "
                   "the pose step runs eager", flush=True)
             self._render, self.compiled = None, False
-            return self.net.render(encoded, batch)
+            return self._eager_step(encoded, batch)
 
     def pose_gflop(self, key: str) -> float:
         """GFLOP (convolutions and matmuls, ``torch.utils.flop_counter``) of one eager pose step of source ``key`` at
@@ -148,16 +152,16 @@ class ViewSession:
         from torch.utils.flop_counter import FlopCounterMode
 
         source = self.source(key)
-        batch = {"K": self.K, "T_tgt_src": self.controls.pose(self.controls.initial(source.meta), source.meta)[None],
-                 "pivot": self.pivot}
+        batch = self._batch(self.controls.initial(source.meta), source)
         with torch.inference_mode(), self._context():
             encoded, _ = self._encode(source)
             with FlopCounterMode(display=False) as counter:
-                if self.splits:
-                    self.net.render(encoded, batch)
-                else:
-                    self.net({**batch, "src": encoded})
+                self._eager_step(encoded, batch)
         return counter.get_total_flops() / 1e9
+
+    def _batch(self, values: dict[str, float], source: Source) -> dict:
+        """The pose part of a batch for the control ``values`` (checked against the trained range)."""
+        return {"K": self.K, "T_tgt_src": self.controls.pose(values, source.meta)[None], "pivot": self.pivot}
 
     def view(self, key: str, values: dict[str, float], route: bool = False) -> View:
         """Render source ``key`` at the pose of the control ``values`` (checked against the trained range); with
@@ -165,15 +169,14 @@ class ViewSession:
         if route and self.router is None:
             raise UserError("routing is off: start the viewer with route=<a route_rule.json> (nvs.evaluate route=fit)")
         source = self.source(key)
-        T = self.controls.pose(values, source.meta)[None]
+        batch = self._batch(values, source)
         t0, cpu0 = time.perf_counter(), time.thread_time()
         with torch.inference_mode(), self._context():
             encoded, fresh = self._encode(source)
-            batch = {"K": self.K, "T_tgt_src": T, "pivot": self.pivot}
             if route:
                 out = self.router.render((self._src(source), encoded), batch)
             else:
-                out = self._pose_step(encoded, batch) if self.splits else self.net({**batch, "src": encoded})
+                out = self._pose_step(encoded, batch)
             rgb = to_uint8(out["rgb"][0])
             depth = out.get("depth")
             if depth is not None and not bool(torch.isfinite(depth[0]).all()):
