@@ -132,6 +132,7 @@ def mode_peak(peaks: dict, mode: str) -> float | None:
     """The measured conv peak (GFLOP/s) a row of ``mode`` is compared with, if the report measured it."""
     return peaks.get(MODE_PEAK.get(mode, "") + "_gflops")
 
+
 _N, _C, _S = 8, 64, 128
 SLOW_PEAK_CALL_MS = 2000.0
 
