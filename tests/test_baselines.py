@@ -21,6 +21,7 @@ from nvs.models.baselines.sun import Sun
 from nvs.models.baselines.tatarchenko import Tatarchenko
 from nvs.run.build import build_module
 from tests.conftest import compose_train, fixture_batch
+from tests.run_helpers import cli_in_process
 
 REPO = Path(__file__).resolve().parents[1]
 BASELINES = ["tatarchenko", "chen", "sun"]
@@ -301,13 +302,13 @@ def test_short_run_through_train_entry_point(name, objects_root, tmp_path):
     assert ("depth_l1" in m["test"]) == (name == "chen")
 
 
-def test_unsupported_loss_through_train_entry_point_is_one_line(objects_root, tmp_path):
-    cmd = [sys.executable, "-m", "nvs.train", "experiment=tatarchenko_chairs", "loss=[recon,warp]",
-           f"data.root={objects_root}", f"paths.log_dir={tmp_path}", "trainer.enable_progress_bar=false",
-           "trainer.max_steps=1", "data.loader.batch_size=2", "test=false"]
-    res = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=600)
-    assert res.returncode == 2, res.stderr[-3000:]
-    assert "model 'tatarchenko' cannot provide 'warped_src'" in res.stderr and "Traceback" not in res.stderr
+def test_unsupported_loss_through_train_entry_point_is_one_line(objects_root, tmp_path, monkeypatch):
+    argv = ["experiment=tatarchenko_chairs", "loss=[recon,warp]", f"data.root={objects_root}",
+            f"paths.log_dir={tmp_path}", "trainer.enable_progress_bar=false", "trainer.max_steps=1",
+            "data.loader.batch_size=2", "test=false"]
+    code, err = cli_in_process("train", argv, monkeypatch)
+    assert code == 2, err[-3000:]
+    assert "model 'tatarchenko' cannot provide 'warped_src'" in err and "Traceback" not in err
 
 
 def test_ground_truth_warp_treats_missing_depth_as_the_data_says():

@@ -22,6 +22,7 @@ from nvs.run.build import build_module
 from nvs.run.config_check import check_config
 from nvs.run.run_checks import model_mismatch
 from tests.conftest import CONF_DIR, compose_train
+from tests.run_helpers import cli_in_process
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -307,19 +308,30 @@ def test_model_mismatch_names_the_differing_key(tmp_path):
         assert model_mismatch(asked("model=nvs", "model.n_points=100"), held).startswith("model.n_points:")
 
 
-def test_checkpoint_of_another_skip_option_is_one_clear_error(objects_root, tmp_path):
+def _evaluate_in_process(monkeypatch, *args) -> tuple[int, str]:
+    """``python -m nvs.evaluate *args``'s exit code and stderr, through its entry point in this process."""
+    return cli_in_process("evaluate", list(args), monkeypatch)
+
+
+def _one_clear_error(code: int, err: str, *needles) -> bool:
+    return code == 2 and "Traceback" not in err and all(n in err for n in needles)
+
+
+def test_checkpoint_of_another_skip_option_is_one_clear_error(objects_root, tmp_path, monkeypatch):
     ckpt = _checkpoint(tmp_path, ["model/skips=warped", "loss=[recon]"])
-    res = _python("-m", "nvs.evaluate", f"ckpt_path={ckpt}", "model=nvs", "model/skips=none", "data=chairs",
-                  f"data.root={objects_root}", f"out_dir={tmp_path / 'e'}", f"hydra.run.dir={tmp_path / 'h'}")
-    assert _is_one_clear_error(res, "model.skips", "WarpedSkips"), res.stderr[-2000:]
+    code, err = _evaluate_in_process(monkeypatch, f"ckpt_path={ckpt}", "model=nvs", "model/skips=none", "data=chairs",
+                                     f"data.root={objects_root}", f"out_dir={tmp_path / 'e'}",
+                                     f"hydra.run.dir={tmp_path / 'h'}")
+    assert _one_clear_error(code, err, "model.skips", "WarpedSkips"), err[-2000:]
+    assert not (tmp_path / "e").exists() and not (tmp_path / "h").exists()  # nothing left behind
 
 
-def test_checkpoint_weights_of_another_shape_are_one_clear_error(objects_root, tmp_path):
+def test_checkpoint_weights_of_another_shape_are_one_clear_error(objects_root, tmp_path, monkeypatch):
     """A checkpoint whose config names one skip option but whose weights come from another (edited, or stale code)."""
     ckpt = _checkpoint(tmp_path, ["model/skips=plain", "loss=[recon]"])
     data = torch.load(ckpt, weights_only=False)
     data["nvs_config"]["model"]["skips"] = {"_target_": "nvs.models.skips.NoSkips"}
     torch.save(data, ckpt)
-    res = _python("-m", "nvs.evaluate", f"ckpt_path={ckpt}", "data=chairs", f"data.root={objects_root}",
-                  f"out_dir={tmp_path / 'e'}", f"hydra.run.dir={tmp_path / 'h'}")
-    assert _is_one_clear_error(res, "model.ckpt", "pixel_decoder"), res.stderr[-2000:]
+    code, err = _evaluate_in_process(monkeypatch, f"ckpt_path={ckpt}", "data=chairs", f"data.root={objects_root}",
+                                     f"out_dir={tmp_path / 'e'}", f"hydra.run.dir={tmp_path / 'h'}")
+    assert _one_clear_error(code, err, "model.ckpt", "pixel_decoder"), err[-2000:]

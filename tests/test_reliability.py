@@ -30,25 +30,14 @@ from nvs.run.cli import exits_cleanly
 from nvs.run.overrides import trainer_arguments
 from nvs.train import check_composes
 from tests.conftest import compose_train
+from tests.run_helpers import cli_in_process
 
 REPO = Path(__file__).resolve().parents[1]
 
 
 def _cli(module: str, argv: list[str], monkeypatch) -> tuple[int, str]:
     """``python -m nvs.<module> *argv`` in this process -> (exit code, stderr)."""
-    import importlib
-
-    mod = importlib.import_module(f"nvs.{module}")
-    monkeypatch.setenv("HYDRA_MAIN_MODULE", "__main__")  # Hydra finds conf/ from the file, as under `python -m`
-    monkeypatch.setattr(sys, "argv", [f"nvs/{module}.py", *argv])
-    err = io.StringIO()
-    code = 0
-    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-        try:
-            mod.main_cli()
-        except SystemExit as e:
-            code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
-    return code, err.getvalue()
+    return cli_in_process(module, argv, monkeypatch)
 
 
 def _error_lines(stderr: str) -> list[str]:

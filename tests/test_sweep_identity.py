@@ -177,12 +177,28 @@ def test_the_recorder_a_training_job_loads_imports_nothing_heavy():
                          ("lightning",)) == []
 
 
+def _loaded_after_each(statements: tuple[str, ...], names: tuple[str, ...]) -> list[list[str]]:
+    """What each statement loads of ``names``, in one interpreter: the ``nvs`` modules are dropped from
+    ``sys.modules`` before each, so every statement imports the project afresh (torch and Lightning, which no name
+    here is, load once: they cost a command line ~5 s of CPU each time)."""
+    code = ("import sys\n"
+            f"for statement in {statements!r}:\n"
+            "    for m in [m for m in sys.modules if m == 'nvs' or m.startswith('nvs.')]: del sys.modules[m]\n"
+            "    exec(statement)\n"
+            f"    print([n for n in {names!r} if n in sys.modules])\n")
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120,
+                         env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"})
+    assert out.returncode == 0, out.stderr[-2000:]
+    return [eval(line) for line in out.stdout.strip().splitlines()[-len(statements):]]
+
+
 def test_the_sweep_and_the_figures_command_lines_import_no_other_command_line():
     clis = ("nvs.figures", "nvs.sweep.__main__", "nvs.evaluate", "nvs.train", "nvs.bench", "nvs.stress")
-    assert _loaded_after("import nvs.sweep.__main__", clis) == ["nvs.sweep.__main__"]
-    assert _loaded_after("import nvs.figures", clis) == ["nvs.figures"]
-    # what the figures library loads when it rebuilds a run
-    assert _loaded_after("import nvs.report.figures, nvs.run.checkpoints, nvs.run.build, nvs.run.compose", clis) == []
+    # the last: what the figures library loads when it rebuilds a run
+    statements = ("import nvs.sweep.__main__", "import nvs.figures",
+                  "import nvs.report.figures, nvs.run.checkpoints, nvs.run.build, nvs.run.compose")
+    # the last [] also shows the purge at work: without it the two CLIs loaded before would still be listed
+    assert _loaded_after_each(statements, clis) == [["nvs.sweep.__main__"], ["nvs.figures"], []]
 
 
 def test_a_reference_row_takes_the_data_overrides_it_reads_not_the_validation_ones(tmp_path):

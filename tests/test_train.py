@@ -13,7 +13,7 @@ from nvs.models.reference import REFERENCE_MODELS
 from nvs.run.build import build_module, parameter_count
 from nvs.run.config_check import check_config
 from tests.conftest import CONF_DIR, compose_train, fixture_batch
-from tests.run_helpers import train_in_process
+from tests.run_helpers import cli_in_process, train_in_process
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -191,7 +191,7 @@ def _evaluate(tmp_path, *args):
     return subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=600)
 
 
-def test_evaluate_checkpoint_and_reference_models(objects_root, tmp_path):
+def test_evaluate_checkpoint_and_reference_models(objects_root, tmp_path, monkeypatch):
     train_in_process(objects_root, tmp_path / "t", "trainer.max_steps=2", "trainer.val_check_interval=2",
                      "data.loader.batch_size=2", "loss=[recon]", "test=false")
     ckpt = next((tmp_path / "t").rglob("last.ckpt"))
@@ -201,17 +201,22 @@ def test_evaluate_checkpoint_and_reference_models(objects_root, tmp_path):
     m = json.loads((out / "metrics.json").read_text())
     assert m["test"]["n_pairs"] == 4 and "depth_sc_inv" in m["test"]
     assert len((out / "test_per_image.csv").read_text().splitlines()) == 5
+    # The rest through the same entry point in this process (the command line's start is tested above).
+    def evaluate(*args):
+        return cli_in_process("evaluate", [f"paths.log_dir={tmp_path}", *args], monkeypatch)
+
     # The floor: copying the source, evaluated without a checkpoint.
-    res = _evaluate(tmp_path, "model=copy_source", "data=chairs", f"data.root={objects_root}", f"out_dir={out}/c")
-    assert res.returncode == 0, res.stderr[-3000:]
+    code, err = evaluate("model=copy_source", "data=chairs", f"data.root={objects_root}", f"out_dir={out}/c")
+    assert code == 0, err[-3000:]
     assert json.loads((out / "c" / "metrics.json").read_text())["params"] == 0
     # A checkpoint asked to be another model option: one clear error, no traceback.
-    res = _evaluate(tmp_path, f"ckpt_path={ckpt}", "model=copy_source", f"out_dir={out}/x")
-    assert res.returncode == 2 and "holds model 'nvs'" in res.stderr and "Traceback" not in res.stderr
+    code, err = evaluate(f"ckpt_path={ckpt}", "model=copy_source", f"out_dir={out}/x")
+    assert code == 2 and "holds model 'nvs'" in err and "Traceback" not in err, err[-3000:]
     bad = tmp_path / "bad.ckpt"
     bad.write_bytes(b"not a checkpoint")
-    res = _evaluate(tmp_path, f"ckpt_path={bad}", f"out_dir={out}/y")
-    assert res.returncode == 2 and "bad.ckpt: not a readable checkpoint" in res.stderr
+    code, err = evaluate(f"ckpt_path={bad}", f"out_dir={out}/y")
+    assert code == 2 and "bad.ckpt: not a readable checkpoint" in err and "Traceback" not in err, err[-3000:]
+    assert not (out / "x").exists() and not (out / "y").exists()  # a refused evaluation writes nothing
 
 
 def test_onecycle_schedule_warms_up_then_anneals_over_max_steps(tmp_path):

@@ -4,8 +4,6 @@ back with the frame and vertex counts asked for, and the CLIs run end to end on 
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import imageio_ffmpeg
@@ -21,9 +19,9 @@ from nvs.viewer.paths import camera_path
 from nvs.viewer.session import Source, ViewSession
 from nvs.viewer.video import compose_frames, render_views, write_video
 from tests.conftest import compose_train, fixture_batch
+from tests.run_helpers import cli_in_process
 from tests.viewer_helpers import built_net, one_step_checkpoint
 
-REPO = Path(__file__).resolve().parents[1]
 OBJECTS = ObjectControls(40, (0.0, 0.0, 2.0))
 SCENES = SceneControls((-0.4, 0.2), (0.0, 1.5), 0.02)
 
@@ -174,12 +172,11 @@ def test_render_video_writes_beside_the_checkpoint_by_default(checkpoint, tmp_pa
     assert videos_dir("elsewhere/model.ckpt") == Path("elsewhere/videos")
 
 
-def test_a_refused_render_video_leaves_no_run_folder(checkpoint, tmp_path):
-    res = subprocess.run([sys.executable, "-m", "nvs.render_video", f"ckpt_path={checkpoint}", "path=forward",
-                          f"paths.log_dir={tmp_path / 'runs'}"], cwd=REPO, capture_output=True, text=True,
-                         timeout=300)
-    assert res.returncode == 2 and "path=forward drives the camera forward" in res.stderr, res.stderr[-2000:]
-    assert "Traceback" not in res.stderr
+def test_a_refused_render_video_leaves_no_run_folder(checkpoint, tmp_path, monkeypatch):
+    code, err = cli_in_process("render_video", [f"ckpt_path={checkpoint}", "path=forward",
+                                                f"paths.log_dir={tmp_path / 'runs'}"], monkeypatch)
+    assert code == 2 and "path=forward drives the camera forward" in err, err[-2000:]
+    assert "Traceback" not in err
     assert not (tmp_path / "runs" / "render_video").exists() or not any((tmp_path / "runs" / "render_video").iterdir())
 
 

@@ -22,7 +22,7 @@ from nvs.viewer.controls import ObjectControls, SceneControls, build_controls
 from nvs.viewer.images import decode_upload
 from nvs.viewer.load import measure
 from nvs.viewer.process import ViewerProcess
-from nvs.viewer.server import check_address
+from nvs.viewer.address import check_address
 from nvs.viewer.session import Source, ViewSession
 from tests.conftest import fixture_batch
 from tests.viewer_helpers import built_net, one_step_checkpoint
@@ -205,10 +205,15 @@ def test_loopback_only_and_a_taken_port_is_one_clear_error(tmp_path):
         port = taken.getsockname()[1]
         with pytest.raises(UserError, match=f"port {port} on 127.0.0.1 is already in use"):
             check_address("127.0.0.1", port)
-        res = subprocess.run([sys.executable, "-m", "nvs.viewer", "ckpt_path=any.ckpt", f"port={port}",
-                              f"hydra.run.dir={tmp_path}"], cwd=REPO,
-                             capture_output=True, text=True, timeout=120)
-    assert res.returncode == 2 and "already in use" in res.stderr and "Traceback" not in res.stderr
+        # python -m nvs.viewer, reporting which heavy libraries it had loaded when it exited
+        code = ("import runpy, sys; sys.argv = sys.argv[1:]\n"
+                "try:\n    runpy.run_module('nvs.viewer', run_name='__main__')\n"
+                "except SystemExit as e:\n"
+                "    print('exit', e.code, [m for m in ('torch', 'lightning', 'aiohttp') if m in sys.modules])")
+        res = subprocess.run([sys.executable, "-c", code, "nvs.viewer", "ckpt_path=any.ckpt", f"port={port}",
+                              f"hydra.run.dir={tmp_path}"], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert "already in use" in res.stderr and "Traceback" not in res.stderr, res.stderr[-2000:]
+    assert res.stdout.strip().splitlines()[-1] == "exit 2 []"  # said before the model and its libraries load
 
 
 # -- a real server: the load script and a real browser -------------------------------------------------------------

@@ -3,24 +3,27 @@
 from __future__ import annotations
 
 import hydra
-import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from nvs.run.cli import exits_cleanly
 from nvs.run.compose import CONF_DIR
 from nvs.run.config_check import check_config
-from nvs.run.quiet import silence_known_noise
-from nvs.viewer.build import build_session
-from nvs.viewer.server import build_app, check_address, serve
+from nvs.viewer.address import check_address
 
 
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="viewer")
 @exits_cleanly
 def main(cfg: DictConfig) -> None:
     check_config("viewer", cfg, HydraConfig.get().overrides.task)
+    check_address(cfg.host, cfg.port)  # before torch, Lightning and the model load: a taken port is said at once
+    import torch
+
+    from nvs.run.quiet import silence_known_noise
+    from nvs.viewer.build import build_session
+    from nvs.viewer.server import build_app, serve
+
     silence_known_noise()
-    check_address(cfg.host, cfg.port)  # before the model loads: a taken port is reported at once
     if cfg.threads:
         torch.set_num_threads(int(cfg.threads))
     session, meta = build_session(cfg)

@@ -16,11 +16,8 @@ from __future__ import annotations
 
 import asyncio
 import base64
-import errno
-import ipaddress
 import logging
 import math
-import socket
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -30,6 +27,7 @@ from aiohttp import web
 from aiohttp.http_exceptions import HttpProcessingError
 
 from nvs.core.errors import UserError
+from nvs.viewer.address import bind_error, check_address  # noqa: F401 - check_address: the server's own name too
 from nvs.report.pointcloud import ply_bytes
 from nvs.viewer.cloud import file_stem, view_points
 from nvs.viewer.controls import describe
@@ -216,31 +214,6 @@ def build_app(session: ViewSession, meta: dict, threads: int | None = None) -> w
     return app
 
 
-def check_address(host: str, port: int) -> None:
-    """Loopback only, and a port that is free now (0: any free port); one clear UserError otherwise."""
-    try:
-        loopback = ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        loopback = False
-    if not loopback:
-        raise UserError(f"host={host!r}: the viewer serves on a loopback address only (127.0.0.1)")
-    if not isinstance(port, int) or not 0 <= port <= 65535:
-        raise UserError(f"port={port!r}: expected a port number 0..65535 (0: any free port)")
-    family = socket.AF_INET6 if ":" in host else socket.AF_INET
-    with socket.socket(family, socket.SOCK_STREAM) as s:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the server binds: TIME_WAIT is no conflict
-        try:
-            s.bind((host, port))
-        except OSError as err:
-            raise _bind_error(host, port, err) from None
-
-
-def _bind_error(host: str, port: int, err: OSError) -> UserError:
-    if err.errno == errno.EADDRINUSE:
-        return UserError(f"port {port} on {host} is already in use: pass port=<another> (or port=0 for any free port)")
-    return UserError(f"cannot listen on {host}:{port}: {err.strerror or err}")
-
-
 async def _serve(app: web.Application, host: str, port: int) -> None:
     runner = web.AppRunner(app, access_log=None)
     await runner.setup()
@@ -248,7 +221,7 @@ async def _serve(app: web.Application, host: str, port: int) -> None:
         await web.TCPSite(runner, host, port).start()
     except OSError as err:
         await runner.cleanup()
-        raise _bind_error(host, port, err) from None
+        raise bind_error(host, port, err) from None
     bound_host, bound_port = runner.addresses[0][:2]
     shown = f"[{bound_host}]" if ":" in bound_host else bound_host
     print(f"viewer: http://{shown}:{bound_port}/  (Ctrl-C stops it)", flush=True)
