@@ -4,8 +4,6 @@ mean (an oracle); both warp the source like gt_warp."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,8 +17,8 @@ from nvs.models.reference import GroundTruthWarp
 from nvs.models.reference_planes import ConstantDepthWarp, GroundTruthPlaneWarp
 from nvs.run.mean_depth import training_mean_depth
 from tests.conftest import compose_train, fixture_batch
+from tests.run_helpers import cli_in_process
 
-REPO = Path(__file__).resolve().parents[1]
 TRAIN_DEPTHS = {"m0": 1.5, "m1": 2.5, "m2": 3.5}  # the test model m3 gets 100: the floor must never see it
 
 
@@ -99,15 +97,14 @@ def test_the_reference_options_compose_for_every_dataset(model):
             assert cfg.model.data == cfg.data  # the run's own data node, read as the run reads it
 
 
-def test_evaluating_the_floor_uses_no_test_ground_truth(tmp_path):
+def test_evaluating_the_floor_uses_no_test_ground_truth(tmp_path, monkeypatch):
     root = _objects(tmp_path / "objects")
     out = tmp_path / "eval"
-    res = subprocess.run([sys.executable, "-m", "nvs.evaluate", "model=mean_depth", "data=chairs",
-                          f"data.root={root}", f"hydra.run.dir={out}", "+trainer.enable_progress_bar=false"],
-                         cwd=REPO, capture_output=True, text=True, timeout=600)
-    assert res.returncode == 0, res.stderr[-3000:]
+    code, err = cli_in_process("evaluate", ["model=mean_depth", "data=chairs", f"data.root={root}",
+                                            f"hydra.run.dir={out}", "+trainer.enable_progress_bar=false"], monkeypatch)
+    assert code == 0, err[-3000:]
     metrics = json.loads((out / "metrics.json").read_text())
-    mean = float(res.stderr.split("mean depth under")[1].split(":")[1].split()[0])
+    mean = float(err.split("mean depth under")[1].split(":")[1].split()[0])
     assert 1.5 <= mean <= 3.5 and metrics["model"] == "mean_depth"
     # the test chair's depth is 100 everywhere it has any: the floor is 100 - mean off
     assert metrics["test"]["depth_l1"] == pytest.approx(100 - mean, rel=1e-4)
