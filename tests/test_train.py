@@ -146,9 +146,11 @@ def _train(objects_root, tmp_path, *extra):
     return subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=600)
 
 
-def test_fast_dev_run_through_real_train_yaml(objects_root, tmp_path):
-    res = _train(objects_root, tmp_path, "debug=fast_dev_run")
-    assert res.returncode == 0, res.stderr[-3000:]
+def test_fast_dev_run_through_real_train_yaml(objects_root, tmp_path, monkeypatch):
+    # the entry point in this process (the command line's own start: test_short_run_writes_artifacts)
+    code, err = cli_in_process("train", [f"data.root={objects_root}", f"paths.log_dir={tmp_path}",
+                                         "trainer.enable_progress_bar=false", "debug=fast_dev_run"], monkeypatch)
+    assert code == 0, err[-3000:]
     metrics = list(tmp_path.rglob("metrics.json"))
     assert len(metrics) == 1
     m = json.loads(metrics[0].read_text())
