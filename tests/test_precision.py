@@ -93,6 +93,32 @@ def test_the_probe_runs_once_per_machine_and_is_cached(tmp_path, monkeypatch):
     assert len(calls) == 2
 
 
+def test_a_probe_taken_on_a_busy_machine_is_taken_again_once_it_is_quiet(tmp_path, monkeypatch):
+    """`make test`'s workers loading the cores skew the modes apart; the next quiet run measures them again."""
+    monkeypatch.setenv("NVS_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(precision, "_cores", lambda: 2)
+    monkeypatch.setattr(precision.torch.cuda, "is_available", lambda: False)
+    timings = iter([{"fp32": 336.0, "cl": 149.0, "bf16_cl": 1024.0},  # busy: cl looks 2.26x faster
+                    {"fp32": 39.0, "cl": 35.0, "bf16_cl": 466.0},  # quiet
+                    {"fp32": 1.0, "cl": 2.0, "bf16_cl": 3.0}])  # never asked for
+    calls = []
+    monkeypatch.setattr(precision, "_time_modes", lambda *a: calls.append(1) or dict(next(timings)))
+    load = {"now": 3.37}
+    monkeypatch.setattr(precision, "load_average", lambda: load["now"])
+    assert precision.busy(1.5) and not precision.busy(1.49) and not precision.busy(None)
+
+    busy_choice = choose("auto")
+    assert busy_choice.mode == "cl" and "probed on a busy machine (load 3.37)" in busy_choice.line()
+    assert choose("auto").probe_ms["fp32"] == 336.0 and len(calls) == 1  # still busy: the kept probe serves
+    load["now"] = 0.4
+    quiet = choose("auto")
+    assert len(calls) == 2 and quiet.probe_ms["fp32"] == 39.0 and "busy" not in quiet.line()
+    entry = json.loads((tmp_path / "precision.json").read_text())[precision.machine_key()]
+    assert entry["load_avg_1min"] == 0.4 and entry["ms"]["cl"] == 35.0  # the quiet probe replaced the busy one
+    load["now"] = 5.0
+    assert choose("auto").probe_ms["fp32"] == 39.0 and len(calls) == 2  # a quiet probe is kept whatever the load
+
+
 def test_the_probe_interleaves_the_modes_keeps_each_ones_fastest_round_and_drops_a_far_slower_mode(monkeypatch):
     """A burst of load in one round costs that round only; an emulated bf16 (10x) is timed in two rounds only."""
     order = []
