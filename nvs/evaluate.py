@@ -51,11 +51,13 @@ def _evaluate(cfg: DictConfig, out_dir: Path, stop: SignalStop) -> dict:
     from nvs.run.checkpoints import restore_module, restore_run_config
     from nvs.run.display_callbacks import PairTestBar
     from nvs.run.inference_skipping import skip_at_inference
+    from nvs.run.quiet import silence_known_noise
     from nvs.run.routing import RULE_FILE, route_option, write_rule
     from nvs.run.size_timing import sizes_option, timing_by_size
     from nvs.run.skips_calibration import threshold_option
     from nvs.run.validation_pass import Calibration
 
+    silence_known_noise()  # again, now that Lightning is loaded (its console handler)
     limit = cfg.get("limit")
     if limit is not None and (isinstance(limit, bool) or not isinstance(limit, int) or limit < 1):
         raise UserError(f"limit={limit}: expected a positive number of test pairs (limit=null: all of them)")

@@ -115,6 +115,23 @@ def test_in_a_log_file_the_test_bar_is_plain_lines_or_nothing(bar, lines, tmp_pa
     assert counts == (["9", "18", "21"] if lines else []), out
 
 
+def test_lightning_lines_print_once_where_the_root_logger_prints_them(monkeypatch):
+    """Under Hydra the root logger has a handler: Lightning's own console handler goes (each line printed once);
+    without one (a library caller that set up no logging) Lightning keeps its handler, or its lines would vanish."""
+    from nvs.run import quiet
+
+    light, root = logging.getLogger("lightning"), logging.getLogger()
+    own = logging.StreamHandler()
+    monkeypatch.setattr(light, "handlers", [own])
+    monkeypatch.setattr(light, "propagate", True)
+    monkeypatch.setattr(root, "handlers", [])
+    quiet._one_line_per_lightning_record()
+    assert light.handlers == [own]
+    monkeypatch.setattr(root, "handlers", [logging.StreamHandler()])
+    quiet._one_line_per_lightning_record()
+    assert light.handlers == []
+
+
 def test_silence_drops_exactly_the_listed_noise(caplog):
     silence_known_noise()
     rank_zero = logging.getLogger("lightning.pytorch.utilities.rank_zero")
@@ -188,7 +205,9 @@ def test_a_run_logs_to_tensorboard_wandb_offline_and_csv_with_the_image_grid(obj
     noise = ("litlogger", "litmodels", "LeafSpec", "module(s) in eval mode", "wandb:", "anonymous", "v_num",
              "\x1b", "Validation")
     assert not [n for n in noise if n in res.stdout + res.stderr]
-    assert "`Trainer.fit` stopped: `max_steps=4` reached." in res.stderr
+    # each Lightning line once: the root logger Hydra configures prints it (and files it), Lightning's own handler not
+    assert (res.stdout + res.stderr).count("`Trainer.fit` stopped: `max_steps=4` reached.") == 1
+    assert "`Trainer.fit` stopped" in (run_dir / "train.log").read_text()
 
 
 def test_the_validation_grid_takes_pairs_spread_over_the_split_one_per_model():
