@@ -72,10 +72,12 @@ def test_plan_pairs_sizes_with_batches_and_names_bad_keys():
     assert pairs == [(64, 8), (128, 8), (256, 4)]  # the studies' batch at 64² and 128²
     assert list(models) == ["full", "tatarchenko", "chen", "sun"]
     assert plan(_bench_cfg("image_size=128", "train_batch=16"))[0] == [(128, 16)]
+    assert plan(_bench_cfg("image_size=256"))[0] == [(256, 4)]  # one of sizes: the list's batch there
     assert plan(_bench_cfg("sizes=[64,256]", "train_batch=2"))[0] == [(64, 2), (256, 2)]
     for bad, key in ((["train_batch=[8,8]"], "'train_batch'"), (["modes=[fp32,fast]"], "'modes': unknown"),
                      (["only=[full,bogus]"], "'only'"), (["sizes=[64,0]", "train_batch=8"], "'sizes'"),
-                     (["repeats=0"], "'repeats'")):
+                     (["repeats=0"], "'repeats'"), (["image_size=abc"], "'image_size': expected a positive"),
+                     (["image_size=96"], "image_size=96 is not one of sizes .* give train_batch=<n>")):
         with pytest.raises(UserError, match=key):
             plan(_bench_cfg(*bad))
 

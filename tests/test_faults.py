@@ -276,6 +276,13 @@ def test_well_typed_overrides_pass(overrides):
     _check(overrides)
 
 
+@pytest.mark.parametrize("overrides", [["model.n_points=0"], ["model.n_points=-5"], ["model=chen", "model.n_points=0"]])
+def test_a_latent_of_no_points_is_one_clear_error_at_build(overrides, tmp_path):
+    """Well typed but builds nothing: n_points=0 crashed at the first forward, -5 deep inside torch."""
+    with pytest.raises(UserError, match=r"n_points=-?\d+: expected a positive integer"):
+        build_module(_resolved(overrides, tmp_path))
+
+
 def test_every_mismatch_is_listed_in_one_message():
     with pytest.raises(UserError, match=r"config 'data.size': .*; config 'trainer.max_steps'"):
         _check(["trainer.max_steps=a", "data.size=b", "data=drive"])

@@ -47,16 +47,24 @@ def _positive(value, key: str) -> int:
 
 def plan(cfg: DictConfig) -> tuple[list[tuple[int, int]], dict[str, list[str]]]:
     """-> ([(size, train batch)], {model option: overrides}), every key checked."""
-    sizes = [cfg.image_size] if cfg.get("image_size") is not None else list(cfg.sizes)
+    one = cfg.get("image_size")
+    sizes = [_positive(one, "image_size")] if one is not None else [_positive(s, "sizes") for s in cfg.sizes]
     batches = cfg.train_batch
-    if OmegaConf.is_list(batches):
-        if cfg.get("image_size") is not None or len(batches) != len(sizes):
+    if OmegaConf.is_list(batches) and one is not None:
+        # one size from the list's sizes takes its batch there (image_size=128: 128's); another needs its own
+        listed = dict(zip(cfg.sizes, batches)) if len(batches) == len(cfg.sizes) else {}
+        if one not in listed:
+            raise UserError(f"bench.yaml 'train_batch': image_size={one} is not one of sizes {list(cfg.sizes)}, so "
+                            f"it has no batch there: give train_batch=<n>")
+        batches = [listed[one]]
+    elif OmegaConf.is_list(batches):
+        if len(batches) != len(sizes):
             raise UserError(f"bench.yaml 'train_batch': {len(batches)} batches for sizes {sizes}: give one per size "
                             "or one number for all")
         batches = list(batches)
     else:
         batches = [batches] * len(sizes)
-    pairs = [(_positive(s, "sizes"), _positive(b, "train_batch")) for s, b in zip(sizes, batches)]
+    pairs = [(s, _positive(b, "train_batch")) for s, b in zip(sizes, batches)]
     for key in ("eval_batch", "repeats"):
         _positive(cfg[key], key)
     if cfg.throughput_batch is not None:

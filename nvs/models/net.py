@@ -7,7 +7,7 @@ from collections.abc import Callable
 import torch
 import torch.nn as nn
 
-from nvs.core.choices import check_choice
+from nvs.core.choices import check_choice, check_count
 from nvs.core.types import Batch, Extras, Outputs, to_image_range, to_model_range
 from nvs.models.blocks import init_weights
 from nvs.models.encoder import Encoder
@@ -49,6 +49,7 @@ class NVSNet(nn.Module):
                  latent_rotation: str = "code", side_upsample: str = "nearest", warp_align: str = "code",
                  warp_padding: str = "border", init: str = "normal"):
         super().__init__()
+        check_count(n_points, "n_points")
         check_warp(warp_align, warp_padding)
         check_choice(latent_rotation, ROTATIONS, "latent_rotation")
         self.image_size = image_size

@@ -7,6 +7,7 @@ from collections.abc import Callable
 import torch
 import torch.nn as nn
 
+from nvs.core.choices import check_count
 from nvs.core.geometry import BORDER_TOLERANCE, about_pivot, project_to_source, sample_at
 from nvs.core.types import Batch, Extras, Outputs, to_model_range
 from nvs.models.baselines.common import BaselineOutputs
@@ -135,6 +136,7 @@ class Chen(nn.Module):
     def __init__(self, image_size: int, head: nn.Module, n_points: int = 200, latent_rotation: str = "code",
                  depth: Callable[..., nn.Module] | None = None):
         super().__init__()
+        check_count(n_points, "n_points")
         if latent_rotation not in LATENT_ROTATIONS:
             raise ValueError(f"latent_rotation={latent_rotation!r}: expected one of {', '.join(LATENT_ROTATIONS)}")
         self.image_size = image_size
