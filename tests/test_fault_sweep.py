@@ -177,7 +177,7 @@ def test_a_job_killed_with_its_runner_is_incomplete_and_the_next_run_resumes_it(
     again = subprocess.run(args, cwd=REPO, capture_output=True, text=True, timeout=900)
     assert again.returncode == 0, again.stderr[-3000:]
     assert "1 incomplete; launching 1" in again.stderr
-    assert f"Restored all states from the checkpoint at {job / 'checkpoints' / 'last.ckpt'}" in again.stderr
+    assert f"Restored all states from the checkpoint at {job / 'checkpoints' / 'last.ckpt'}" in again.stdout
     assert json.loads((job / "metrics.json").read_text())["steps"] == steps
     rows = _rows(job / "csv" / "metrics.csv")  # the curve of both segments, every step once
     assert sorted(s for s, kind in rows if kind == "train") == list(range(steps)), rows
