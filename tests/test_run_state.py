@@ -128,6 +128,33 @@ def test_a_moved_run_resumes_its_newest_checkpoint_and_keeps_its_curve(objects_r
                                                    (3, "train"), (4, "val")]
 
 
+def test_a_resumed_auto_run_keeps_the_mode_it_started_in(objects_root, tmp_path, monkeypatch):
+    """The probe picks cl for the first segment and fp32 by the resume (a busy probe taken again, other threads): the
+    run trains its remaining steps in cl, records that, and says why; an explicit precision is not overridden."""
+    from nvs.run import precision
+    from nvs.run.training import run
+
+    monkeypatch.setattr(precision.torch.cuda, "is_available", lambda: False)
+    fastest = {"ms": {"fp32": 2.0, "cl": 1.0, "bf16_cl": 9.0}}
+    monkeypatch.setattr(precision, "probe", lambda refresh=False: dict(fastest["ms"]))
+    steps = ["trainer.max_steps=4", "trainer.val_check_interval=2", "test=false", "trainer.precision=auto",
+             "channels_last=auto"]
+    kill = {"kill": {"_target_": "tests.test_run_state.KillAt", "step": 3}}
+    with pytest.raises(Interrupted):
+        run(_cfg(objects_root, tmp_path, tmp_path / "run", *steps, callbacks=kill), tmp_path / "run")
+    held = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", weights_only=False)["callbacks"]
+    assert held["PrecisionRecord"]["mode"] == "cl"
+    fastest["ms"] = {"fp32": 1.0, "cl": 2.0, "bf16_cl": 9.0}
+    result = run(_cfg(objects_root, tmp_path, tmp_path / "run", *steps), tmp_path / "run")
+    choice = result["precision_choice"]
+    assert result["steps"] == 4 and choice["mode"] == "cl" and choice["channels_last"]
+    assert "the mode of the run it resumes" in choice["reason"] and "now picks fp32" in choice["reason"]
+    fresh = run(_cfg(objects_root, tmp_path, tmp_path / "fresh", *steps[:3], "channels_last=auto"), tmp_path / "fresh")
+    assert fresh["precision_choice"]["mode"] == "fp32"  # a new run takes the probe's pick
+    # an explicit precision and layout stay as asked, whatever the checkpoint recorded
+    assert precision.kept_through_resume(precision.choose("32-true", False), held["PrecisionRecord"]).mode == "fp32"
+
+
 def test_resume_picks_the_newest_checkpoint_by_its_step_not_its_name(tmp_path):
     for name, step in [("last.ckpt", 2), ("last-v1.ckpt", 8), ("best-6.ckpt", 6)]:
         torch.save({"global_step": step, "state_dict": {"w": torch.zeros(2)}}, tmp_path / name)

@@ -109,3 +109,16 @@ def resume_checkpoint(ckpt_path: str | None, directory: str | Path) -> tuple[str
     check_complete(path)  # what a kill during a write leaves is named as such
     ckpt = read_checkpoint(path, mmap=True)
     return str(path), int(ckpt.get("global_step", 0)) if isinstance(ckpt, dict) else 0
+
+
+def held_precision(path: str | None) -> dict | None:
+    """The precision choice a run recorded in its checkpoint at ``path`` (``PrecisionRecord``'s state), or None
+    (no path, a checkpoint written before the record, or one that does not read: the resume itself reports that)."""
+    if path is None:
+        return None
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=False, mmap=True)
+    except Exception:  # noqa: BLE001 - read whole and reported by resume_checkpoint; here only the record matters
+        return None
+    record = (ckpt.get("callbacks") or {}).get("PrecisionRecord") if isinstance(ckpt, dict) else None
+    return dict(record) if isinstance(record, dict) else None

@@ -258,6 +258,19 @@ def choose(requested="auto", channels_last="auto", accelerator: str | None = "au
     return Choice(requested, requested, cl, _mode_name(requested, cl), reason, ms)
 
 
+def kept_through_resume(choice: Choice, held: dict | None) -> Choice:
+    """``choice`` for a run that resumes a checkpoint recording ``held`` (its first segment's ``Choice.record()``):
+    under ``auto`` the recorded mode, so that one run never trains in two modes (a re-probe, another thread count or
+    a busy probe may pick another now); an explicit precision, or no record, keeps ``choice``."""
+    if choice.requested != AUTO or not held or held.get("requested") != AUTO or held.get("mode") not in MODES:
+        return choice
+    if held["mode"] == choice.mode:
+        return choice
+    precision, cl = MODES[held["mode"]]
+    return Choice(AUTO, precision, cl, held["mode"], f"the mode of the run it resumes, kept for its remaining steps "
+                  f"(this machine's probe now picks {choice.mode})", choice.probe_ms)
+
+
 def _mode_name(precision: str, channels_last: bool) -> str:
     for mode, (p, cl) in {**MODES, "bf16": ("bf16-mixed", False)}.items():
         if (p, cl) == (precision, channels_last):

@@ -1,4 +1,5 @@
-"""The callbacks every training run carries (not configurable): its throughput and its stop on SIGINT/SIGTERM."""
+"""The callbacks every training run carries (not configurable): its throughput, its stop on SIGINT/SIGTERM and the
+record of the precision it trains in."""
 
 from __future__ import annotations
 
@@ -245,3 +246,18 @@ def stop_launched_ranks(trainer, grace_s: float = 10.0) -> None:
             proc.wait(timeout=max(deadline - time.monotonic(), 0.01))
         except Exception:  # noqa: BLE001 - still running (subprocess.TimeoutExpired): it will not finish by itself
             proc.kill()
+
+
+class PrecisionRecord(L.Callback):
+    """The run's precision choice (``nvs.run.precision.Choice.record()``) in its checkpoints, so that a resumed
+    ``precision=auto`` run trains its remaining steps in the mode it started in, whatever this machine's probe says
+    now (``nvs.run.precision.kept_through_resume``)."""
+
+    def __init__(self, record: dict):
+        self.record = dict(record)
+
+    def state_dict(self) -> dict:
+        return dict(self.record)
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        """The resumed run's choice is made before the Trainer restores this: nothing to take over."""

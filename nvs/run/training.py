@@ -24,16 +24,16 @@ from nvs.module.lightning_module import NVSModule
 from nvs.run.artifacts import (check_writable, existing_files, is_global_zero, remove_unstarted_run, run_record,
                                test_record, write_run_results)
 from nvs.run.build import build_data, build_module, choose_precision
-from nvs.run.checkpoint_files import read_checkpoint, resume_checkpoint
+from nvs.run.checkpoint_files import held_precision, read_checkpoint, resume_checkpoint
 from nvs.run.checkpoints import AtomicCheckpointIO
 from nvs.run.config_check import component_problems
 from nvs.run.csv_log import continue_from
 from nvs.run.loggers import log_run_config
 from nvs.run.overrides import hydra_value
-from nvs.run.precision import Choice
+from nvs.run.precision import Choice, kept_through_resume
 from nvs.run.quiet import silence_known_noise
 from nvs.run.run_checks import check_batches, check_resume, check_run_config, check_trained, resume_load_error
-from nvs.run.standard_callbacks import Interruption, Throughput
+from nvs.run.standard_callbacks import Interruption, PrecisionRecord, Throughput
 
 
 def resume_command(out_dir: Path) -> str:
@@ -97,10 +97,6 @@ def _run(cfg: DictConfig, out_dir: Path, throughput: Throughput) -> dict:
     testing = bool(cfg.test) and not fast_dev_run
     # Every list and referenced file of the splits this run reads, before the first step (seconds).
     datamodule.validate(("train", "val", "test") if testing else ("train", "val"))
-    choice = choose_precision(cfg)
-    if is_global_zero():
-        print(choice.line(), flush=True)
-    module = build_module(cfg, channels_last=choice.channels_last)
     callbacks = [instantiate(c) for c in cfg.get("callbacks", {}).values()]
     if not cfg.trainer.get("enable_progress_bar", True):  # the trainer's switch also turns the configured bar off
         callbacks = [c for c in callbacks if not isinstance(c, L.pytorch.callbacks.ProgressBar)]
@@ -116,11 +112,17 @@ def _run(cfg: DictConfig, out_dir: Path, throughput: Throughput) -> dict:
                 check_writable(lg.log_dir)
     ckpt_dir = Path(checkpoint_cbs[0].dirpath) if checkpoint_cbs and checkpoint_cbs[0].dirpath else out_dir
     resume = resume_checkpoint(cfg.ckpt_path, ckpt_dir)
+    choice = choose_precision(cfg)
+    if str(cfg.get("channels_last", "auto")) == "auto":  # a resumed auto run keeps the mode it started in
+        choice = kept_through_resume(choice, held_precision(resume[0] if resume is not None else None))
+    if is_global_zero():
+        print(choice.line(), flush=True)
+    module = build_module(cfg, channels_last=choice.channels_last)
     for lg in loggers:  # the curve of the steps before the checkpoint stays; the steps trained again are re-logged
         if isinstance(lg, L.pytorch.loggers.CSVLogger) and is_global_zero():
             continue_from(lg, resume[1] if resume is not None else None)
     interruption = Interruption(ckpt_dir / "last.ckpt", resume_command(out_dir))
-    carried = [throughput, interruption]
+    carried = [throughput, interruption, PrecisionRecord(choice.record())]
     if loggers:  # the learning rate of each parameter group at every logged step (it needs a logger)
         carried.append(L.pytorch.callbacks.LearningRateMonitor(logging_interval="step"))
     trainer = _trainer(cfg, callbacks=callbacks + carried, logger=loggers or False,
