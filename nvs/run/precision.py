@@ -5,7 +5,8 @@ in three modes -- ``fp32`` (NCHW), ``cl`` (fp32 channels_last) and ``bf16_cl`` (
 picks the fastest, timing the modes in interleaved rounds. bf16 is only fast where the CPU has native bf16
 instructions (AVX512-BF16, AMX); elsewhere oneDNN emulates it at ~10x the fp32 cost, which is why a fixed bf16
 default cannot serve every machine. The result is cached per machine (CPU model, family/model/stepping, bf16
-flags, threads) and torch version, so it costs ~0.5-1 s once.
+flags, threads) and torch version, so it costs ~0.5-1 s once; a probe taken on a busy machine is taken again by the
+first run that finds it quiet. A resumed run keeps the mode its checkpoint records (:func:`kept_through_resume`).
 On CUDA, auto picks bf16 autocast where the device supports it (fp32 otherwise) without probing.
 
 An explicit precision is honoured; bf16 on a CPU that the probe measures slower than fp32 gets one warning line.
