@@ -8,6 +8,7 @@ import csv
 import os
 import shutil
 import signal
+import warnings
 import zipfile
 from pathlib import Path
 
@@ -145,7 +146,10 @@ def test_a_resumed_auto_run_keeps_the_mode_it_started_in(objects_root, tmp_path,
     held = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", weights_only=False)["callbacks"]
     assert held["PrecisionRecord"]["mode"] == "cl"
     fastest["ms"] = {"fp32": 1.0, "cl": 2.0, "bf16_cl": 9.0}
-    result = run(_cfg(objects_root, tmp_path, tmp_path / "run", *steps), tmp_path / "run")
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        result = run(_cfg(objects_root, tmp_path, tmp_path / "run", *steps), tmp_path / "run")
+    assert not [w for w in seen if "exists and is not empty" in str(w.message)]  # a resume is no surprise
     choice = result["precision_choice"]
     assert result["steps"] == 4 and choice["mode"] == "cl" and choice["channels_last"]
     assert "the mode of the run it resumes" in choice["reason"] and "now picks fp32" in choice["reason"]

@@ -8,6 +8,7 @@ from __future__ import annotations
 import shlex
 import signal
 import time
+import warnings
 from pathlib import Path
 
 import lightning as L
@@ -112,6 +113,8 @@ def _run(cfg: DictConfig, out_dir: Path, throughput: Throughput) -> dict:
                 check_writable(lg.log_dir)
     ckpt_dir = Path(checkpoint_cbs[0].dirpath) if checkpoint_cbs and checkpoint_cbs[0].dirpath else out_dir
     resume = resume_checkpoint(cfg.ckpt_path, ckpt_dir)
+    if resume is not None:  # resuming into the run's own checkpoint folder is the design, not a surprise
+        warnings.filterwarnings("ignore", message=r"Checkpoint directory .* exists and is not empty")
     choice = choose_precision(cfg)
     if str(cfg.get("channels_last", "auto")) == "auto":  # a resumed auto run keeps the mode it started in
         choice = kept_through_resume(choice, held_precision(resume[0] if resume is not None else None))
