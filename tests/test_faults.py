@@ -31,13 +31,14 @@ def _python(*args, cwd=REPO, timeout=600):
     return subprocess.run([sys.executable, *args], cwd=cwd, capture_output=True, text=True, timeout=timeout)
 
 
-def _is_one_clear_error(res, *needles) -> bool:
-    return res.returncode == 2 and "Traceback" not in res.stderr and all(n in res.stderr for n in needles)
-
-
 def _one_clear_error(code: int, err: str, *needles) -> bool:
-    """The same for a command run in this process (``cli_in_process``): its exit code and stderr."""
+    """Exit 2, no traceback, every needle in stderr (a command run in this process: ``cli_in_process``)."""
     return code == 2 and "Traceback" not in err and all(n in err for n in needles)
+
+
+def _is_one_clear_error(res, *needles) -> bool:
+    """The same for a finished subprocess."""
+    return _one_clear_error(res.returncode, res.stderr, *needles)
 
 
 # -- kill and resume ------------------------------------------------------------------------------------------------

@@ -50,17 +50,16 @@ def plan(cfg: DictConfig) -> tuple[list[tuple[int, int]], dict[str, list[str]]]:
     one = cfg.get("image_size")
     sizes = [_positive(one, "image_size")] if one is not None else [_positive(s, "sizes") for s in cfg.sizes]
     batches = cfg.train_batch
-    if OmegaConf.is_list(batches) and one is not None:
-        # one size from the list's sizes takes its batch there (image_size=128: 128's); another needs its own
-        listed = dict(zip(cfg.sizes, batches)) if len(batches) == len(cfg.sizes) else {}
-        if one not in listed:
-            raise UserError(f"bench.yaml 'train_batch': image_size={one} is not one of sizes {list(cfg.sizes)}, so "
-                            f"it has no batch there: give train_batch=<n>")
-        batches = [listed[one]]
-    elif OmegaConf.is_list(batches):
-        if len(batches) != len(sizes):
-            raise UserError(f"bench.yaml 'train_batch': {len(batches)} batches for sizes {sizes}: give one per size "
-                            "or one number for all")
+    if OmegaConf.is_list(batches):
+        if len(batches) != len(cfg.sizes if one is not None else sizes):
+            raise UserError(f"bench.yaml 'train_batch': {len(batches)} batches for sizes {list(cfg.sizes)}: give one "
+                            "per size or one number for all")
+        if one is not None:  # one of the listed sizes takes its batch there (image_size=128: 128's)
+            listed = dict(zip(cfg.sizes, batches))
+            if one not in listed:
+                raise UserError(f"bench.yaml 'train_batch': image_size={one} is not one of sizes {list(cfg.sizes)}, "
+                                "so it has no batch there: give train_batch=<n>")
+            batches = [listed[one]]
         batches = list(batches)
     else:
         batches = [batches] * len(sizes)
