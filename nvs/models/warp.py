@@ -66,4 +66,11 @@ def warp(src: torch.Tensor, depth_tgt: torch.Tensor, K: torch.Tensor, T_tgt_src:
         dtype = torch.promote_types(src.dtype, torch.float32)
         out = F.grid_sample(src.to(dtype), grid.to(dtype), mode="bilinear", padding_mode=padding,
                             align_corners=align == "exact")
-    return out.to(src.dtype), valid[:, None].to(src.dtype)
+    # grid_sample answers in NCHW: back to the source's layout (one copy, with the cast where there is one), so a
+    # channels_last network's skip concatenations and convolutions do not convert whole tensors.
+    layout = torch.channels_last if _is_channels_last(src) else torch.contiguous_format
+    return out.to(src.dtype, memory_format=layout), valid[:, None].to(src.dtype)
+
+
+def _is_channels_last(x: torch.Tensor) -> bool:
+    return x.dim() == 4 and x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous()

@@ -11,6 +11,7 @@ from nvs.core.choices import check_count
 from nvs.core.geometry import BORDER_TOLERANCE, about_pivot, project_to_source, sample_at
 from nvs.core.types import Batch, Extras, Outputs, to_model_range
 from nvs.models.baselines.common import BaselineOutputs
+from nvs.models.blocks import ReflectionPad2d
 
 LATENT_ROTATIONS = ("code", "exact")
 
@@ -93,7 +94,7 @@ class ChenDecoder(nn.Module):
             if k < self.N_TRANSPOSED:
                 layers.append(nn.ConvTranspose2d(cin, cout, 4, stride=2, padding=1))
             else:
-                layers += [nn.Upsample(scale_factor=2, mode="bilinear", align_corners=False), nn.ReflectionPad2d(1),
+                layers += [nn.Upsample(scale_factor=2, mode="bilinear", align_corners=False), ReflectionPad2d(1),
                            nn.Conv2d(cin, cout, 3)]
             layers += [nn.BatchNorm2d(cout), nn.LeakyReLU(0.2)]
             cin = cout

@@ -7,7 +7,7 @@ import torch.nn as nn
 
 from nvs.core.types import Batch, Outputs, to_image_range, to_model_range
 from nvs.models.baselines.common import POSE_DIM, BaselineOutputs, halvings, pose_code
-from nvs.models.blocks import act, down, up_transposed
+from nvs.models.blocks import Conv2d, act, down, up_transposed
 
 
 class Tatarchenko(nn.Module):
@@ -44,7 +44,7 @@ class Tatarchenko(nn.Module):
         dec = enc[-2::-1] + [32]  # S/2^(k-1) ... S
         self.decoder = nn.Sequential(*[up_transposed(cin, cout, norm="none")
                                        for cin, cout in zip([enc[-1]] + dec[:-1], dec)])
-        self.out = nn.Conv2d(dec[-1], 3, 3, padding=1, padding_mode="reflect")
+        self.out = Conv2d(dec[-1], 3, 3, padding=1, padding_mode="reflect")
         self.channels = enc[-1]
         # Bottlenecks other than 4x4 (sizes that are no power of two) are pooled to 4x4 and resized back.
         same = self.bottleneck == 4
