@@ -140,6 +140,12 @@ def main(cfg: DictConfig) -> None:
             print(f"{size}²: {', '.join(slow)} not timed at larger sizes (≥ {cfg.drop_slower}× the fastest mode)")
         write_json(f"{cfg.out_dir}/{name}.json", report)  # after every size: a long run keeps what it measured
         write_text(f"{cfg.out_dir}/{name}.md", markdown(report))
+    if cfg.measure_peak:  # once more at the end: the rows' % are of the larger of the two
+        report["peak_start"] = report["peak"]
+        report["peak"], report["peak_end"] = measure.peak_again(device, report["peak_start"])
+        print(f"peak at the end: {report['peak_end']}", flush=True)
+        write_json(f"{cfg.out_dir}/{name}.json", report)
+        write_text(f"{cfg.out_dir}/{name}.md", markdown(report))
     print(f"wrote {cfg.out_dir}/{name}.json and .md")
 
 

@@ -114,6 +114,17 @@ def reference_table(block: dict, model: str = "full") -> list[str]:
                     "fewer FLOPs, needs less memory).", ""]
 
 
+def _drift(report: dict) -> str:
+    """The start and end peaks, where the run timed both (the rows use the larger of each kind)."""
+    start, end = report.get("peak_start") or {}, report.get("peak_end") or {}
+    both = [k for k in ("fp32_conv", "fp32_conv_cl", "fp32_matmul", "bf16_conv_cl") if f"{k}_gflops" in end
+            and f"{k}_gflops" in start]
+    if not both:
+        return ""
+    return (" The larger of two timings, at the start and at the end of the run (" + ", ".join(
+        f"{k} {start[k + '_gflops']:.0f} → {end[k + '_gflops']:.0f}" for k in both) + "): the machine's speed drifts.")
+
+
 def markdown(report: dict, rendered: str | None = None) -> str:
     """The report as Markdown; ``rendered``: a line saying the text was rendered again from the report's JSON."""
     h = report["header"]
@@ -128,7 +139,7 @@ def markdown(report: dict, rendered: str | None = None) -> str:
         lines += ["Measured peaks (GFLOP/s; a 2048² matmul, a 3×3 64-channel conv at 128², batch 8, forward): "
                   + ", ".join(f"{names[k]} {p[k + '_gflops']:.0f}" for k in names if k + "_gflops" in p)
                   + ". Each row's % is of its own mode's conv peak (fp32 → NCHW, cl → channels_last, bf16 modes → "
-                  "bf16 channels_last).", ""]
+                  "bf16 channels_last)." + _drift(report), ""]
     lines += ["Train: one optimiser step on a synthetic batch of the data contract (forward, `NVSModule.loss`, "
               "backward, Adam) as training runs it; eval: the novel view of the eval batch under `no_grad`. Medians "
               "over interleaved repeats (every contender of a size once per round). Peak memory: what one call "
