@@ -49,8 +49,9 @@ def share_bound(row: dict, batch: int, peak: float, goal: float, profile: dict |
     """
     ms, flop = row["train_ms"], row["train_gflop_per_sample"] * batch
     allowed = flop / (goal * peak) * 1000
-    points = round(100 * (goal - flop / (ms / 1000) / peak))
-    text = (f"short by {points} percentage point{'s' if points != 1 else ''}: the goal allows {allowed:.0f} ms for "
+    short = 100 * (goal - flop / (ms / 1000) / peak)
+    points = f"{short:.1f}" if short < 1 else f"{short:.0f}"  # a step just short of the goal is not "short by 0"
+    text = (f"short by {points} percentage point{'s' if points != '1' else ''}: the goal allows {allowed:.0f} ms for "
             f"the step's {flop:.0f} GFLOP, it took {ms:.0f} ms")
     if not profile:
         return (f"{text}; no profile of this step beside the report (`python -m nvs.bench profile=[{row['size']}] "
