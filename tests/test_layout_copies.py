@@ -15,15 +15,11 @@ import torch.nn.functional as F
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from nvs.bench.contenders import make_batches, nvs_contender
-from nvs.models.blocks import Conv2d, InstanceNorm, ReflectionPad2d, pad_values
+from nvs.models.blocks import Conv2d, InstanceNorm, ReflectionPad2d, is_channels_last, pad_values
 from nvs.models.warp import warp
 
 ROOT = Path(__file__).resolve().parents[1]
 CL = torch.channels_last
-
-
-def _is_cl(x: torch.Tensor) -> bool:
-    return x.is_contiguous(memory_format=CL) and not x.is_contiguous()
 
 
 def test_the_instance_norm_keeps_channels_last_and_normalises_as_torchs():
@@ -33,7 +29,7 @@ def test_the_instance_norm_keeps_channels_last_and_normalises_as_torchs():
     g = torch.randn_like(ref)
     y.backward(g)
     ref.backward(g)
-    assert _is_cl(y) and _is_cl(x.grad)
+    assert is_channels_last(y) and is_channels_last(x.grad)
     assert (y - ref).abs().max() < 1e-5 and (x.grad - ref_x.grad).abs().max() < 1e-4
     # A large mean against a small spread (where a sum of squares cancels: F.group_norm is off by ~1e3 here) and a
     # large scale: as accurate as torch's own, against fp64
@@ -82,7 +78,7 @@ def test_the_warp_answers_in_its_sources_layout():
     src = torch.randn(B, 16, H, H)
     out_nchw, _ = warp(src, depth, K, T)
     out_cl, _ = warp(src.contiguous(memory_format=CL), depth, K, T)
-    assert out_nchw.is_contiguous() and _is_cl(out_cl) and torch.equal(out_cl, out_nchw)
+    assert out_nchw.is_contiguous() and is_channels_last(out_cl) and torch.equal(out_cl, out_nchw)
 
 
 class _ConvInputs(TorchDispatchMode):
@@ -97,7 +93,7 @@ class _ConvInputs(TorchDispatchMode):
         reads = {"convolution": args[:1], "convolution_backward": args[:2]}.get(name, ())
         for x in reads:
             if x.dim() == 4 and x.shape[1] >= 8 and x.shape[2] * x.shape[3] > 1:  # layout-ambiguous ones aside
-                self.seen.append((name, tuple(x.shape), _is_cl(x)))
+                self.seen.append((name, tuple(x.shape), is_channels_last(x)))
         return func(*args, **(kwargs or {}))
 
 

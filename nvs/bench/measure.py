@@ -135,6 +135,7 @@ def mode_peak(peaks: dict, mode: str) -> float | None:
 
 _N, _C, _S = 8, 64, 128
 SLOW_PEAK_CALL_MS = 2000.0
+_PEAK_FLOP = {"matmul": 2 * 2048**3, "conv": 2 * _N * _C * _C * 9 * _S * _S}  # one call of each kind
 
 
 def machine_peak(device: torch.device, repeats: int = 7, kinds=None) -> dict:
@@ -146,8 +147,7 @@ def machine_peak(device: torch.device, repeats: int = 7, kinds=None) -> dict:
     conv_cl = torch.nn.Conv2d(_C, _C, 3, padding=1).to(device, memory_format=torch.channels_last)
     x_cl = x.contiguous(memory_format=torch.channels_last)
     mats = {None: a, torch.bfloat16: a.to(torch.bfloat16)}
-    flop = {"matmul": 2 * 2048**3, "conv": 2 * _N * _C * _C * 9 * _S * _S}
-    flop["conv_cl"] = flop["conv"]
+    flop = {**_PEAK_FLOP, "conv_cl": _PEAK_FLOP["conv"]}
 
     def kernel(dtype, what):
         def run():
@@ -171,11 +171,11 @@ def machine_peak(device: torch.device, repeats: int = 7, kinds=None) -> dict:
 
 def peak_again(device: torch.device, start: dict) -> tuple[dict, dict]:
     """The peaks timed once more at the end of a run -> (the larger of the two per kind, the end's). A shared machine
-    drifts over a long bench (on the AVX2 EPYC the NCHW conv peak read 103 and then 79 GFLOP/s in two runs 11 minutes apart), and a row timed
-    while it was faster than at the start would read > 100% of a peak timed once. Kinds whose one call took seconds
-    (emulated bf16 matmul) keep the start's value."""
-    flop = {"matmul": 2 * 2048**3, "conv": 2 * _N * _C * _C * 9 * _S * _S}
+    drifts over a long bench (on the AVX2 EPYC the NCHW conv peak read 103 and then 79 GFLOP/s in two runs 11
+    minutes apart), and a row timed while it was faster than at the start would read > 100% of a peak timed once.
+    Kinds whose one call took seconds (emulated bf16 matmul) keep the start's value."""
     quick = [k for k, (_, what) in PEAK_KINDS.items() if f"{k}_gflops" in start  # its one call's ms at the start
-             and flop["matmul" if what == "matmul" else "conv"] / start[f"{k}_gflops"] / 1e6 <= SLOW_PEAK_CALL_MS]
+             and _PEAK_FLOP["matmul" if what == "matmul" else "conv"] / start[f"{k}_gflops"] / 1e6
+             <= SLOW_PEAK_CALL_MS]
     end = machine_peak(device, kinds=quick) if quick else {}
     return {k: max(v, end.get(k, v)) for k, v in start.items()}, end

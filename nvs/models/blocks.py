@@ -9,11 +9,15 @@ import torch.nn.functional as F
 from nvs.core.choices import check_choice
 
 
+def is_channels_last(x: torch.Tensor) -> bool:
+    """A 4-D tensor stored channels_last (and not also contiguous, as tensors with C == 1 or H*W == 1 are)."""
+    return x.dim() == 4 and x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous()
+
 
 class _InstanceNormKeepingLayout(torch.autograd.Function):
-    """Instance normalisation over (H, W) that keeps its input's memory format: a two-pass ``var_mean`` (as accurate
-    as ``F.instance_norm``'s, where a sum of squares cancels), then ``(x - mean) * rstd``; the backward in closed
-    form, ``rstd * (g - mean(g) - y * mean(g * y))``."""
+    """Instance normalisation over (H, W) that keeps its input's memory format: ``torch.var_mean`` (Welford: as
+    accurate as ``F.instance_norm``'s, where a sum of squares cancels), then ``(x - mean) * rstd``; the backward in
+    closed form, ``rstd * (g - mean(g) - y * mean(g * y))``."""
 
     @staticmethod
     def forward(ctx, x: torch.Tensor, eps: float) -> torch.Tensor:
@@ -42,9 +46,8 @@ class InstanceNorm(nn.InstanceNorm2d):
     """
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if (x.dim() == 4 and not self.affine and not self.track_running_stats and x.shape[1] > 1
-                and x.dtype in (torch.float32, torch.float64) and x.shape[2] * x.shape[3] > 1
-                and x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous()):
+        if (not self.affine and not self.track_running_stats and x.dtype in (torch.float32, torch.float64)
+                and is_channels_last(x)):
             return _InstanceNormKeepingLayout.apply(x, self.eps)
         return super().forward(x)
 

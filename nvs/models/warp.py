@@ -18,6 +18,7 @@ import torch.nn.functional as F
 
 from nvs.core.choices import check_choice
 from nvs.core.geometry import BORDER_TOLERANCE, MIN_DEPTH, inverse_warp, invert_pose
+from nvs.models.blocks import is_channels_last
 
 ALIGNS = ("code", "exact")
 WARP_PADDINGS = ("border", "zeros")
@@ -68,9 +69,5 @@ def warp(src: torch.Tensor, depth_tgt: torch.Tensor, K: torch.Tensor, T_tgt_src:
                             align_corners=align == "exact")
     # grid_sample answers in NCHW: back to the source's layout (one copy, with the cast where there is one), so a
     # channels_last network's skip concatenations and convolutions do not convert whole tensors.
-    layout = torch.channels_last if _is_channels_last(src) else torch.contiguous_format
+    layout = torch.channels_last if is_channels_last(src) else torch.contiguous_format
     return out.to(src.dtype, memory_format=layout), valid[:, None].to(src.dtype)
-
-
-def _is_channels_last(x: torch.Tensor) -> bool:
-    return x.dim() == 4 and x.is_contiguous(memory_format=torch.channels_last) and not x.is_contiguous()
